@@ -1,0 +1,38 @@
+# crowdrl — every target creates/reuses the virtualenv in .venv first.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+export WANDB_MODE ?= offline
+export PYTHONHASHSEED ?= 0
+
+.PHONY: install test test-slow demo bench clean
+
+install: $(STAMP)
+
+# torch is installed first and pinned to the CPU wheel that pip finds locally; the
+# project's range (>=2.11,<2.15) then accepts it instead of pulling a CUDA build.
+# pyrvo (RVO2 2.0.3) is the reference ORCA for tests and benchmarks; it declares a heavy
+# dependency it does not use, hence --no-deps.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "torch==2.13.0"
+	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet --no-deps "pyrvo==0.4.3"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+demo: $(STAMP)
+	$(PY) experiments/demo.py
+
+bench: $(STAMP)
+	$(PY) experiments/bench_env.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis build src/*.egg-info

@@ -1,0 +1,192 @@
+"""``CrowdNavEnv``: B crowd-navigation episodes as one TorchRL ``EnvBase``."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from crowdrl.sim import rng
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
+from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, check_actions, unicycle_step
+from crowdrl.sim.scenarios import initial_states
+from crowdrl.sim.state import CrowdState
+
+SPLITS = tuple(rng.STREAMS)
+
+
+class CrowdNavEnv(EnvBase):
+    """Robot navigation among ORCA humans, ``num_envs`` episodes stepped at once.
+
+    Observations (world frame): ``"robot"`` ``[B, 9]`` = (px, py, vx, vy, radius, gx, gy,
+    v_pref, heading) and ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius). Per-step info:
+    ``"min_separation"``, ``"discomfort_count"``, ``"event"`` (0 running, 1 success,
+    2 collision, 3 timeout) and ``"episode_id"``. Actions are indices into the 81-action
+    unicycle table. Collision and goal terminate; the time limit truncates.
+
+    Episodes come from the ``split`` stream (``train``, ``val`` or ``test``) of ``seed``:
+    each (partial) reset takes the next episode ids in sub-env order, unless the reset
+    tensordict carries ``"episode_id"`` ``[B, 1]``, in which case those episodes are loaded
+    (episode ``i`` is the same whatever ``num_envs`` or device).
+    """
+
+    def __init__(
+        self,
+        scenario: str = "circle",
+        num_envs: int = 1,
+        num_humans: int = 10,
+        *,
+        device: torch.device | str = "cpu",
+        seed: int = 0,
+        split: str = "train",
+        config: CrowdConfig | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        if config is None:
+            config = CrowdConfig(scenario=scenario, num_humans=num_humans)
+        elif config.scenario != scenario or config.num_humans != num_humans:
+            raise ValueError("pass scenario/num_humans either directly or through config, not both differently")
+        super().__init__(device=torch.device(device), batch_size=torch.Size([int(num_envs)]))
+        self.config = config
+        self.split = split
+        self.dtype = dtype
+        self._seed = 0
+        self._next_episode = 0
+        self._actions = action_table(config.robot_v_pref, dtype=dtype, device=self.device)
+        self.state: CrowdState | None = None
+        self._make_specs()
+        self._set_seed(seed)
+
+    @property
+    def num_envs(self) -> int:
+        return self.batch_size[0]
+
+    @property
+    def num_humans(self) -> int:
+        return self.config.num_humans
+
+    def _make_specs(self) -> None:
+        B, N, dev = self.num_envs, self.config.num_humans, self.device
+        self.observation_spec = Composite(
+            robot=Unbounded((B, ROBOT_OBS_DIM), dtype=self.dtype, device=dev),
+            humans=Unbounded((B, N, HUMAN_OBS_DIM), dtype=self.dtype, device=dev),
+            min_separation=Unbounded((B, 1), dtype=self.dtype, device=dev),
+            discomfort_count=Unbounded((B, 1), dtype=torch.int64, device=dev),
+            event=Categorical(4, (B, 1), dtype=torch.int64, device=dev),
+            episode_id=Unbounded((B, 1), dtype=torch.int64, device=dev),
+            shape=(B,),
+            device=dev,
+        )
+        self.action_spec = Categorical(NUM_ACTIONS, shape=(B,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded((B, 1), dtype=self.dtype, device=dev)
+        self.done_spec = Composite(
+            done=Categorical(2, (B, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, (B, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, (B, 1), dtype=torch.bool, device=dev),
+            shape=(B,),
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> int | None:
+        """Select the scenario stream ``seed`` and restart its episode counter."""
+        if seed is None:
+            seed = 0
+        if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        self._seed = int(seed)
+        self._next_episode = 0
+        return seed
+
+    def _observation(self, state: CrowdState, min_sep, discomfort, event, episode_id) -> TensorDict:
+        robot, humans = observe(self.config, state)
+        return TensorDict(
+            {
+                "robot": robot,
+                "humans": humans,
+                "min_separation": min_sep.unsqueeze(-1),
+                "discomfort_count": discomfort.unsqueeze(-1),
+                "event": event.unsqueeze(-1),
+                "episode_id": episode_id,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        B = self.num_envs
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(B).to(self.device)
+        if self.state is None:
+            mask = None  # nothing to keep yet
+        reset_mask = torch.ones(B, dtype=torch.bool, device=self.device) if mask is None else mask
+        ids = None
+        if tensordict is not None and "episode_id" in tensordict.keys():
+            given = tensordict.get("episode_id").reshape(B).to(self.device, torch.int64)
+            if bool((given[reset_mask] < 0).any()):
+                raise ValueError("episode_id must be >= 0 for the sub-envs being reset")
+            ids = given
+        if ids is None:
+            k = int(reset_mask.sum())
+            ids = torch.zeros(B, dtype=torch.int64, device=self.device)
+            ids[reset_mask] = torch.arange(self._next_episode, self._next_episode + k, device=self.device)
+            self._next_episode += k
+        keys = rng.episode_keys(self.split, self._seed, ids[reset_mask])
+        fresh = initial_states(self.config, keys, dtype=self.dtype)
+        if mask is None:
+            self.state = fresh
+            self._episode_id = ids.clone()
+            self._last = (
+                torch.full((B,), float("inf"), dtype=self.dtype, device=self.device),
+                torch.zeros(B, dtype=torch.int64, device=self.device),
+                torch.zeros(B, dtype=torch.int64, device=self.device),
+            )
+        else:
+            idx = reset_mask.nonzero(as_tuple=True)[0]
+            for name in CrowdState.__dataclass_fields__:
+                getattr(self.state, name)[idx] = getattr(fresh, name)
+            self._episode_id = torch.where(reset_mask, ids, self._episode_id)
+            min_sep, discomfort, event = self._last
+            self._last = (
+                torch.where(reset_mask, float("inf"), min_sep),
+                torch.where(reset_mask, 0, discomfort),
+                torch.where(reset_mask, 0, event),
+            )
+        out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
+        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
+        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.state is None:
+            raise RuntimeError("CrowdNavEnv.step() called before reset()")
+        action = tensordict.get("action")
+        if action.device != self.device:
+            raise ValueError(f"action is on {action.device}, the env on {self.device}")
+        if action.shape == (self.num_envs, NUM_ACTIONS) and action.dtype == torch.bool:
+            action = action.long().argmax(-1)  # one-hot
+        elif action.shape == (self.num_envs, 1):
+            action = action.squeeze(-1)
+        action = check_actions(action, self.num_envs)
+        speed_rot = self._actions[action]
+        heading, velocity = unicycle_step(self.state.robot_heading, speed_rot[:, 0], speed_rot[:, 1])
+        self.state, res = step(self.config, self.state, velocity, heading)
+        self._last = (res.min_separation, res.discomfort_count, res.event)
+        out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
+        out.update(
+            {
+                "reward": res.reward.unsqueeze(-1),
+                "done": (res.terminated | res.truncated).unsqueeze(-1),
+                "terminated": res.terminated.unsqueeze(-1),
+                "truncated": res.truncated.unsqueeze(-1),
+            }
+        )
+        return out

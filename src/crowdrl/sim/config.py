@@ -1,0 +1,77 @@
+"""Constants of the crowd-navigation MDP (``SPEC.md`` §1), validated once at construction."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+SCENARIOS = ("circle", "square")
+MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
+
+
+@dataclass(frozen=True)
+class CrowdConfig:
+    """Every number that defines one crowd-navigation episode.
+
+    Defaults are the paper's (upstream SG-D3QN / CrowdNav) values.
+    """
+
+    scenario: str = "circle"
+    num_humans: int = 10
+    time_step: float = 0.25
+    time_limit: float = 29.25  # upstream's 30 s limit fires at t >= 29 s: 117 steps
+    robot_radius: float = 0.3
+    robot_v_pref: float = 1.0
+    human_radius: float = 0.3
+    human_v_pref: float = 1.0
+    circle_radius: float = 4.0
+    square_width: float = 10.0
+    circle_humans_max: int = 5  # circle scenario: the first 5 humans are circle humans
+    discomfort_dist: float = 0.2
+    goal_reward: float = 0.25
+    collision_penalty: float = -0.25
+    progress_factor: float = 0.2
+    goal_steps_before_new_goal: int = 2  # non-stop humans: steps within radius of goal
+    # ORCA parameters of the humans (CrowdNav's ORCA policy)
+    orca_neighbor_dist: float = 10.0
+    orca_max_neighbors: int = 10
+    orca_time_horizon: float = 5.0
+    orca_radius_margin: float = 0.01  # CrowdNav adds 0.01 m to every ORCA radius
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"scenario must be one of {SCENARIOS}, got {self.scenario!r}")
+        if isinstance(self.num_humans, bool) or int(self.num_humans) != self.num_humans or self.num_humans < 1:
+            raise ValueError(f"num_humans must be an integer >= 1, got {self.num_humans!r}")
+        if self.num_humans > MAX_HUMANS:
+            raise ValueError(
+                f"num_humans={self.num_humans} cannot be placed with the spawn clearance in a "
+                f"{self.square_width} m square; at most {MAX_HUMANS} are supported"
+            )
+        for name in ("time_step", "time_limit", "robot_radius", "human_radius", "robot_v_pref",
+                     "human_v_pref", "circle_radius", "square_width", "orca_time_horizon"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if self.time_limit < self.time_step:
+            raise ValueError(f"time_limit ({self.time_limit}) must be >= time_step ({self.time_step})")
+        if self.discomfort_dist < 0:
+            raise ValueError(f"discomfort_dist must be >= 0, got {self.discomfort_dist}")
+        if self.orca_neighbor_dist < 0 or self.orca_max_neighbors < 0:
+            raise ValueError("orca_neighbor_dist and orca_max_neighbors must be >= 0")
+        if self.goal_steps_before_new_goal < 1:
+            raise ValueError(f"goal_steps_before_new_goal must be >= 1, got {self.goal_steps_before_new_goal}")
+
+    @property
+    def max_steps(self) -> int:
+        """Steps before truncation (117 for 29.25 s at 0.25 s)."""
+        return int(math.floor(self.time_limit / self.time_step + 1e-9))
+
+    @property
+    def spawn_clearance(self) -> float:
+        """Minimum start/goal distance between two agents at spawn (0.8 m)."""
+        return self.human_radius + max(self.human_radius, self.robot_radius) + self.discomfort_dist
+
+    @property
+    def num_circle_humans(self) -> int:
+        return min(self.num_humans, self.circle_humans_max) if self.scenario == "circle" else 0

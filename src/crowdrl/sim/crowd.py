@@ -1,0 +1,176 @@
+"""One step of B crowd-navigation episodes: ORCA humans, robot motion, events and reward.
+
+Pure torch on :class:`CrowdState`; no TorchRL here (``crowdrl.envs`` wraps it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.scenarios import new_human_goals
+from crowdrl.sim.state import CrowdState
+
+# Event codes of a step (``StepResult.event``).
+RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
+EVENT_NAMES = ("running", "success", "collision", "timeout")
+
+ROBOT_OBS_DIM = 9  # px, py, vx, vy, radius, gx, gy, v_pref, heading
+HUMAN_OBS_DIM = 5  # px, py, vx, vy, radius
+
+
+class StepResult(NamedTuple):
+    """What one step produced, per episode ``[B]`` (``min_separation`` in metres)."""
+
+    reward: Tensor
+    terminated: Tensor  # collision or goal
+    truncated: Tensor  # time limit, not terminated
+    event: Tensor  # int64: RUNNING, SUCCESS, COLLISION or TIMEOUT
+    min_separation: Tensor  # closest robot-human surface distance during the step
+    discomfort_count: Tensor  # int64: humans closer than discomfort_dist during the step
+    human_lp_infeasible: Tensor  # [B, N] bool: a human's ORCA program fell back to 3-D
+
+
+def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
+    """Vector to the goal, scaled to unit length when longer (CrowdNav's ORCA rule)."""
+    to_goal = goal - position
+    dist = torch.linalg.vector_norm(to_goal, dim=-1, keepdim=True)
+    return torch.where(dist > 1, to_goal / dist.clamp_min(1e-12), to_goal)
+
+
+def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
+    """ORCA velocities of the humans among themselves (the robot is invisible to them)."""
+    B, N = state.batch_size, state.num_humans
+    radius = torch.full((B, N), cfg.human_radius + cfg.orca_radius_margin, dtype=state.human_position.dtype,
+                        device=state.device)
+    sol = orca_solve(
+        state.human_position,
+        state.human_velocity,
+        human_preferred_velocity(state.human_position, state.human_goal),
+        radius,
+        torch.full_like(radius, cfg.human_v_pref),
+        time_step=cfg.time_step,
+        neighbor_dist=cfg.orca_neighbor_dist,
+        max_neighbors=cfg.orca_max_neighbors,
+        time_horizon=cfg.orca_time_horizon,
+    )
+    return sol.velocities, sol.lp_infeasible
+
+
+def closest_surface_distance(rel_position: Tensor, rel_velocity: Tensor, dt: float, radii: float) -> Tensor:
+    """Closest distance of the segment ``p -> p + v*dt`` to the origin, minus ``radii``.
+
+    ``rel_position``/``rel_velocity`` are ``[..., 2]`` (human relative to robot); the result is
+    negative when the two discs touch at some time within the step.
+    """
+    seg = rel_velocity * dt
+    seg_sq = (seg * seg).sum(-1)
+    t = -(rel_position * seg).sum(-1) / torch.where(seg_sq > 0, seg_sq, torch.ones_like(seg_sq))
+    t = t.clamp(0.0, 1.0)
+    closest = rel_position + t.unsqueeze(-1) * seg
+    return torch.linalg.vector_norm(closest, dim=-1) - radii
+
+
+def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_heading: Tensor | None = None
+         ) -> tuple[CrowdState, StepResult]:
+    """Advance every episode by one time step.
+
+    Args:
+        robot_velocity: ``[B, 2]`` the robot's velocity during this step (world frame).
+        robot_heading: ``[B]`` the robot's heading after the step; defaults to the velocity's
+            direction (unchanged when the robot stops).
+    """
+    dt = cfg.time_step
+    B = state.batch_size
+    if robot_velocity.shape != (B, 2):
+        raise ValueError(f"robot_velocity must be shaped [{B}, 2], got {tuple(robot_velocity.shape)}")
+    if robot_heading is None:
+        speed = torch.linalg.vector_norm(robot_velocity, dim=-1)
+        robot_heading = torch.where(
+            speed > 0, torch.atan2(robot_velocity[:, 1], robot_velocity[:, 0]), state.robot_heading
+        )
+    # wrap to [-pi, pi): the observation stays bounded; cos/sin are unchanged
+    robot_heading = torch.remainder(robot_heading + math.pi, 2 * math.pi) - math.pi
+
+    # 1. humans: ORCA from the state at the start of the step
+    human_vel, lp_infeasible = human_velocities(cfg, state)
+
+    # 2. continuous collision check over the linear relative motion within the step
+    rel_p = state.human_position - state.robot_position.unsqueeze(1)
+    rel_v = human_vel - robot_velocity.unsqueeze(1)
+    surface = closest_surface_distance(rel_p, rel_v, dt, cfg.human_radius + cfg.robot_radius)  # [B, N]
+    min_sep = surface.min(-1).values
+    collided = min_sep < 0
+    discomfort = (surface < cfg.discomfort_dist).sum(-1)
+
+    # 3. move
+    robot_pos = state.robot_position + robot_velocity * dt
+    human_pos = state.human_position + human_vel * dt
+    dist_before = torch.linalg.vector_norm(state.robot_position - state.robot_goal, dim=-1)
+    dist_after = torch.linalg.vector_norm(robot_pos - state.robot_goal, dim=-1)
+    reached = dist_after < cfg.robot_radius
+
+    # 4. reward: progress, discomfort (every human, every step), and the terminal bonus/penalty
+    reward = cfg.progress_factor * (dist_before - dist_after)
+    reward = reward + torch.clamp(surface - cfg.discomfort_dist, max=0.0).sum(-1)
+    reward = reward + torch.where(collided, cfg.collision_penalty, torch.where(reached, cfg.goal_reward, 0.0))
+
+    step_count = state.step_count + 1
+    terminated = collided | reached
+    truncated = ~terminated & (step_count >= cfg.max_steps)
+    event = torch.where(
+        collided, COLLISION, torch.where(reached, SUCCESS, torch.where(truncated, TIMEOUT, RUNNING))
+    )
+
+    # 5. non-stop humans: after enough steps near the goal, a new goal and a standstill
+    near_goal = torch.linalg.vector_norm(human_pos - state.human_goal, dim=-1) < cfg.human_radius
+    goal_steps = state.human_goal_steps + near_goal.long()
+    needs_goal = goal_steps >= cfg.goal_steps_before_new_goal
+    moved = state.replace(
+        robot_position=robot_pos,
+        robot_velocity=robot_velocity,
+        robot_heading=robot_heading,
+        human_position=human_pos,
+        human_velocity=human_vel,
+        human_goal_steps=goal_steps,
+        step_count=step_count,
+    )
+    if bool(needs_goal.any()):
+        moved = moved.replace(
+            human_goal=new_human_goals(cfg, moved, needs_goal),
+            human_velocity=torch.where(needs_goal.unsqueeze(-1), 0.0, human_vel),
+            human_goal_steps=torch.where(needs_goal, 0, goal_steps),
+        )
+    result = StepResult(reward, terminated, truncated, event, min_sep, discomfort, lp_infeasible)
+    return moved, result
+
+
+def observe(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
+    """World-frame observation: robot ``[B, 9]`` and humans ``[B, N, 5]``."""
+    B, N = state.batch_size, state.num_humans
+    dtype = state.robot_position.dtype
+    robot = torch.cat(
+        (
+            state.robot_position,
+            state.robot_velocity,
+            torch.full((B, 1), cfg.robot_radius, dtype=dtype, device=state.device),
+            state.robot_goal,
+            torch.full((B, 1), cfg.robot_v_pref, dtype=dtype, device=state.device),
+            state.robot_heading.unsqueeze(-1),
+        ),
+        dim=-1,
+    )
+    humans = torch.cat(
+        (
+            state.human_position,
+            state.human_velocity,
+            torch.full((B, N, 1), cfg.human_radius, dtype=dtype, device=state.device),
+        ),
+        dim=-1,
+    )
+    return robot, humans

@@ -1,0 +1,68 @@
+"""Counter-based random numbers: every draw is a pure function of (key, indices).
+
+Scenario ``i`` of a stream must be the same whatever the batch size or device, so the
+simulator never consumes a sequential generator. Instead each value is a hash of its episode
+key and a tuple of integer indices (which human, which rejection round, which component).
+Keys carry 63 bits in two lanes (so train, validation and test episodes of a long run do not
+collide, as they would with 32 bits), and all arithmetic stays below 2**63 in int64, so it is
+exact on every backend.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+_MASK32 = 0xFFFFFFFF
+STREAMS = {"train": 0x1B873593, "val": 0x68E31DA4, "test": 0x5F3759DF}
+
+
+def _mul32(x: Tensor, c: int) -> Tensor:
+    """``(x * c) mod 2**32`` for ``0 <= x < 2**32`` without int64 overflow."""
+    lo = x * (c & 0xFFFF)
+    hi = ((x * (c >> 16)) & 0xFFFF) << 16
+    return (lo + hi) & _MASK32
+
+
+def hash32(x: Tensor) -> Tensor:
+    """A well-mixing bijection on 32-bit integers (held in int64)."""
+    x = x & _MASK32
+    x = x ^ (x >> 16)
+    x = _mul32(x, 0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = _mul32(x, 0x846CA68B)
+    x = x ^ (x >> 16)
+    return x
+
+
+def fold(key: Tensor, *indices: Tensor | int) -> Tensor:
+    """Hash the 63-bit ``key`` with each index in turn (broadcasting), giving a new key.
+
+    For a fixed key, distinct indices give distinct low lanes, so episodes of one stream never
+    share a key.
+    """
+    h = key
+    for idx in indices:
+        i = hash32(torch.as_tensor(idx, dtype=torch.int64, device=key.device) + 0x9E3779B9)
+        lo, hi = h & _MASK32, h >> 32
+        lo = hash32(lo ^ i ^ hash32(hi + 0x85EBCA6B))
+        hi = hash32(hi ^ hash32(i ^ 0xC2B2AE35) ^ lo) & 0x7FFFFFFF
+        h = (hi << 32) | lo
+    return h
+
+
+def uniform(key: Tensor, *indices: Tensor | int, dtype: torch.dtype = torch.float32) -> Tensor:
+    """Uniform floats in ``[0, 1)`` (24-bit resolution), one per broadcast element."""
+    return ((fold(key, *indices) & _MASK32) >> 8).to(dtype) * (1.0 / (1 << 24))
+
+
+def episode_keys(stream: str, seed: int, episode_ids: Tensor) -> Tensor:
+    """Keys of episodes ``episode_ids`` in ``stream`` (``train``, ``val`` or ``test``) of ``seed``."""
+    if stream not in STREAMS:
+        raise ValueError(f"stream must be one of {tuple(STREAMS)}, got {stream!r}")
+    if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    base = torch.tensor(STREAMS[stream] << 32 | STREAMS[stream], dtype=torch.int64, device=episode_ids.device)
+    seed_lo = int(seed) & _MASK32
+    seed_hi = (int(seed) >> 32) & _MASK32
+    return fold(base, seed_lo, seed_hi, episode_ids.to(torch.int64))

@@ -1,0 +1,60 @@
+"""The batched state of B crowd-navigation episodes: plain tensors, no per-agent objects."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class CrowdState:
+    """State of ``B`` episodes with ``N`` humans each (world frame, metres, seconds)."""
+
+    robot_position: Tensor  # [B, 2]
+    robot_velocity: Tensor  # [B, 2]
+    robot_heading: Tensor  # [B]
+    robot_goal: Tensor  # [B, 2]
+    human_position: Tensor  # [B, N, 2]
+    human_velocity: Tensor  # [B, N, 2]
+    human_goal: Tensor  # [B, N, 2]
+    human_goal_steps: Tensor  # [B, N] int64, steps spent within a radius of the current goal
+    step_count: Tensor  # [B] int64
+    episode_key: Tensor  # [B] int64, key of the episode's counter-based random numbers
+
+    @property
+    def batch_size(self) -> int:
+        return self.robot_position.shape[0]
+
+    @property
+    def num_humans(self) -> int:
+        return self.human_position.shape[1]
+
+    @property
+    def device(self) -> torch.device:
+        return self.robot_position.device
+
+    def replace(self, **changes: Tensor) -> "CrowdState":
+        return dataclasses.replace(self, **changes)
+
+    def where(self, mask: Tensor, other: "CrowdState") -> "CrowdState":
+        """Per episode: ``other`` where ``mask`` ([B] bool) is set, ``self`` elsewhere."""
+        out = {}
+        for f in dataclasses.fields(self):
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            m = mask.reshape(mask.shape + (1,) * (mine.dim() - 1))
+            out[f.name] = torch.where(m, theirs, mine)
+        return CrowdState(**out)
+
+    def to(self, device: torch.device | str) -> "CrowdState":
+        return CrowdState(**{f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)})
+
+    def index(self, idx: Tensor | slice | int) -> "CrowdState":
+        """The episodes selected by ``idx`` along the batch dimension."""
+        out = {}
+        for f in dataclasses.fields(self):
+            t = getattr(self, f.name)[idx]
+            out[f.name] = t
+        return CrowdState(**out)
