@@ -28,7 +28,7 @@ class CrowdNavEnv(EnvBase):
 
     Episodes come from the ``split`` stream (``train``, ``val`` or ``test``) of ``seed``:
     each (partial) reset takes the next episode ids in sub-env order, unless the reset
-    tensordict carries ``"episode_id"`` ``[B, 1]``, in which case those episodes are loaded
+    tensordict carries ``"load_episode"`` ``[B, 1]``, in which case those episodes are loaded
     (episode ``i`` is the same whatever ``num_envs`` or device).
     """
 
@@ -114,7 +114,7 @@ class CrowdNavEnv(EnvBase):
                 "min_separation": min_sep.unsqueeze(-1),
                 "discomfort_count": discomfort.unsqueeze(-1),
                 "event": event.unsqueeze(-1),
-                "episode_id": episode_id,
+                "episode_id": episode_id.clone(),  # never hand out views of internal state
             },
             batch_size=self.batch_size,
             device=self.device,
@@ -129,10 +129,10 @@ class CrowdNavEnv(EnvBase):
             mask = None  # nothing to keep yet
         reset_mask = torch.ones(B, dtype=torch.bool, device=self.device) if mask is None else mask
         ids = None
-        if tensordict is not None and "episode_id" in tensordict.keys():
-            given = tensordict.get("episode_id").reshape(B).to(self.device, torch.int64)
+        if tensordict is not None and "load_episode" in tensordict.keys():
+            given = tensordict.get("load_episode").reshape(B).to(self.device, torch.int64)
             if bool((given[reset_mask] < 0).any()):
-                raise ValueError("episode_id must be >= 0 for the sub-envs being reset")
+                raise ValueError("load_episode must be >= 0 for the sub-envs being reset")
             ids = given
         if ids is None:
             k = int(reset_mask.sum())

@@ -146,7 +146,7 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     """Goals ``[B, N, 2]`` for non-stop humans: fresh ones where ``needs_goal [B, N]``.
 
     Circle scenario: a fresh circle goal for every human; square scenario: a square goal on a
-    random side. A new goal keeps the spawn clearance from every other agent's position and goal
+    random side. A new goal keeps the spawn clearance from every agent's position and goal
     when one of ``GOAL_ROUNDS`` candidates allows it; otherwise the last candidate is used (the
     episode must go on). Only the humans that need a goal are computed.
     """
@@ -163,12 +163,12 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     else:
         side = torch.where(u[3] > 0.5, -1.0, 1.0).to(dtype)
         cand = _square_points(cfg, side, u[0], u[1])
-    # clearance from every other agent's position and goal (robot first, the human itself excluded)
+    # clearance from every agent's position and goal, the robot's and the human's own included
+    # (a goal next to where the human stands would be reached again at once)
     others_pos = torch.cat((state.robot_position.unsqueeze(1), state.human_position), 1)[env]  # [M, N+1, 2]
     others_goal = torch.cat((state.robot_goal.unsqueeze(1), state.human_goal), 1)[env]
-    others = torch.ones(M, N + 1, dtype=torch.bool, device=device)
-    others[torch.arange(M, device=device), human + 1] = False
-    ok = _clear_of(cand, others_pos, others, cfg.spawn_clearance) & _clear_of(cand, others_goal, others, cfg.spawn_clearance)
+    every = torch.ones(M, N + 1, dtype=torch.bool, device=device)
+    ok = _clear_of(cand, others_pos, every, cfg.spawn_clearance) & _clear_of(cand, others_goal, every, cfg.spawn_clearance)
     ok[:, -1] = True
     first = ok.to(torch.int8).argmax(-1)
     chosen = torch.gather(cand, 1, first.view(M, 1, 1).expand(M, 1, 2)).squeeze(1)
