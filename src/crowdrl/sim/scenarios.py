@@ -19,11 +19,11 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.state import CrowdState
 
 SPAWN_ROUNDS = 256  # candidates per human at spawn; exhausting them is an error
-SPAWN_CHUNK = 16  # candidates drawn at once
+SPAWN_CHUNK = 16  # rejection rounds drawn at once
 GOAL_ROUNDS = 16  # candidates per new goal of a non-stop human; exhausting them keeps the last
 
 # Index tags keeping the purposes of random draws apart.
-_TAG_CIRCLE, _TAG_SQUARE_SIDE, _TAG_SQUARE_START, _TAG_SQUARE_GOAL, _TAG_NEW_GOAL = range(5)
+_TAG_SPAWN, _TAG_NEW_GOAL = range(2)
 
 
 class SpawnError(RuntimeError):
@@ -52,42 +52,39 @@ def _clear_of(points: Tensor, others: Tensor, valid_others: Tensor, min_dist: fl
     return ((d >= min_dist) | ~valid_others.unsqueeze(1)).all(-1)
 
 
-def _first_valid(
-    draw: Callable[[Tensor], Tensor], is_ok: Callable[[Tensor], Tensor], what: str, human: int, device: torch.device
-) -> Tensor:
-    """Per episode, the first valid candidate in round order.
+def _spawn_uniforms(episode_key: Tensor, num_humans: int, first_round: int, dtype: torch.dtype) -> Tensor:
+    """All spawn draws of one chunk of rounds in one hash call: ``[B, N, SPAWN_CHUNK, 8]``.
 
-    ``draw(rounds)`` gives candidates ``[B, R, 2]`` for round indices ``rounds [R]``;
-    ``is_ok(candidates)`` flags the valid ones ``[B, R]``. Rounds are tried in chunks so the
-    common case costs one small chunk, while the answer is the same as trying them one by one.
+    Components: 0-2 circle start (angle, x noise, y noise), 3-4 square start, 5-6 square goal,
+    7 square side (read from round 0).
     """
-    result, found = None, None
-    for first in range(0, SPAWN_ROUNDS, SPAWN_CHUNK):
-        rounds = torch.arange(first, first + SPAWN_CHUNK, device=device)
-        cand = draw(rounds)
-        ok = is_ok(cand)
-        pick = torch.gather(cand, 1, ok.to(torch.int8).argmax(-1).view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
-        hit = ok.any(-1)
-        if result is None:
-            result, found = pick, hit
-        else:
-            result = torch.where(found.unsqueeze(-1), result, pick)
-            found = found | hit
-        if bool(found.all()):
-            return result
-    n_bad = int((~found).sum())
-    raise SpawnError(
-        f"could not place the {what} of human {human} in {n_bad} episode(s) after {SPAWN_ROUNDS} "
-        f"rejection rounds: the scenario is too crowded for its spawn clearance"
-    )
+    device = episode_key.device
+    h = torch.arange(num_humans, device=device).view(num_humans, 1, 1)
+    r = torch.arange(first_round, first_round + SPAWN_CHUNK, device=device).view(1, SPAWN_CHUNK, 1)
+    c = torch.arange(8, device=device).view(1, 1, 8)
+    index = (h * SPAWN_ROUNDS + r) * 8 + c
+    return rng.uniform(episode_key.view(-1, 1, 1, 1), _TAG_SPAWN, index, dtype=dtype)
+
+
+def _first_valid(candidates: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
+    """Per episode, the first candidate ``[B, R, 2]`` flagged in ``ok [B, R]``, and whether any was."""
+    first = ok.to(torch.int8).argmax(-1)
+    pick = torch.gather(candidates, 1, first.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
+    return pick, ok.any(-1)
 
 
 def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = torch.float32) -> CrowdState:
-    """Initial states of the episodes with keys ``episode_key [B]`` (see :func:`rng.episode_keys`)."""
+    """Initial states of the episodes with keys ``episode_key [B]`` (see :func:`rng.episode_keys`).
+
+    Humans are placed one after the other, each start (and goal) the first of its rejection
+    rounds that keeps the clearance from everything placed before it, robot included. Rounds
+    are drawn ``SPAWN_CHUNK`` at a time for all humans at once; a further chunk is drawn only
+    for a human that found no valid candidate, so the result equals trying rounds one by one.
+    """
     B, N = episode_key.shape[0], cfg.num_humans
     device = episode_key.device
-    key = episode_key.view(B, 1)
     clearance = cfg.spawn_clearance
+    robot_clear = cfg.human_radius + cfg.robot_radius + cfg.discomfort_dist
 
     robot_pos = torch.tensor([0.0, -cfg.circle_radius], dtype=dtype, device=device).expand(B, 2).clone()
     robot_goal = torch.tensor([0.0, cfg.circle_radius], dtype=dtype, device=device).expand(B, 2).clone()
@@ -95,38 +92,44 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     positions = torch.zeros(B, N + 1, 2, dtype=dtype, device=device)
     goals = torch.zeros(B, N + 1, 2, dtype=dtype, device=device)
     positions[:, 0], goals[:, 0] = robot_pos, robot_goal
-    placed = torch.zeros(B, N + 1, dtype=torch.bool, device=device)
-    placed[:, 0] = True
-    robot_clear = cfg.human_radius + cfg.robot_radius + cfg.discomfort_dist
+    chunk0 = _spawn_uniforms(episode_key, N, 0, dtype)
+    side = torch.where(chunk0[:, :, 0, 7] > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [B, N, 1]
+
+    def clear(points: Tensor, others: Tensor) -> Tensor:
+        """``points [B, R, 2]`` clear of the robot (``others[:, 0]``) and the placed humans."""
+        d = torch.linalg.vector_norm(points.unsqueeze(2) - others.unsqueeze(1), dim=-1)  # [B, R, h+1]
+        return (d[..., 0] >= robot_clear) & (d[..., 1:] >= clearance).all(-1)
+
+    def place(h: int, what: str, make: Callable[[Tensor], Tensor], others: list[Tensor]) -> Tensor:
+        u = chunk0[:, h]
+        result, found = None, None
+        for first in range(0, SPAWN_ROUNDS, SPAWN_CHUNK):
+            if first:
+                u = _spawn_uniforms(episode_key, N, first, dtype)[:, h]
+            cand = make(u)
+            ok = clear(cand, others[0])
+            for extra in others[1:]:
+                ok = ok & clear(cand, extra)
+            pick, hit = _first_valid(cand, ok)
+            result = pick if result is None else torch.where(found.unsqueeze(-1), result, pick)
+            found = hit if found is None else found | hit
+            if bool(found.all()):
+                return result
+        raise SpawnError(
+            f"could not place the {what} of human {h} in {int((~found).sum())} episode(s) after "
+            f"{SPAWN_ROUNDS} rejection rounds: the scenario is too crowded for its spawn clearance"
+        )
 
     for h in range(N):
-        # the robot needs robot_clear; other humans need clearance (both 0.8 m by default)
-        def clear(points: Tensor, others: Tensor) -> Tensor:
-            ok_robot = _clear_of(points, others[:, :1], placed[:, :1], robot_clear)
-            return ok_robot & _clear_of(points, others[:, 1:], placed[:, 1:], clearance)
-
+        placed_pos, placed_goals = positions[:, : h + 1], goals[:, : h + 1]
         if h < cfg.num_circle_humans:
-            start = _first_valid(
-                lambda r: _circle_points(cfg, *(rng.uniform(key, _TAG_CIRCLE, h, r, c, dtype=dtype) for c in range(3))),
-                lambda p: clear(p, positions) & clear(p, goals),
-                "start", h, device,
-            )
+            start = place(h, "start", lambda u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
+                          [placed_pos, placed_goals])
             goal = -start
         else:
-            side_u = rng.uniform(episode_key, _TAG_SQUARE_SIDE, h, dtype=dtype)
-            side = torch.where(side_u > 0.5, -1.0, 1.0).to(dtype).view(B, 1)
-            start = _first_valid(
-                lambda r: _square_points(cfg, side, *(rng.uniform(key, _TAG_SQUARE_START, h, r, c, dtype=dtype) for c in range(2))),
-                lambda p: clear(p, positions),
-                "start", h, device,
-            )
-            goal = _first_valid(
-                lambda r: _square_points(cfg, -side, *(rng.uniform(key, _TAG_SQUARE_GOAL, h, r, c, dtype=dtype) for c in range(2))),
-                lambda p: clear(p, goals),
-                "goal", h, device,
-            )
+            start = place(h, "start", lambda u: _square_points(cfg, side[:, h], u[..., 3], u[..., 4]), [placed_pos])
+            goal = place(h, "goal", lambda u: _square_points(cfg, -side[:, h], u[..., 5], u[..., 6]), [placed_goals])
         positions[:, h + 1], goals[:, h + 1] = start, goal
-        placed[:, h + 1] = True
 
     return CrowdState(
         robot_position=robot_pos,
@@ -154,10 +157,12 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     dtype, device = state.human_goal.dtype, state.device
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
-    rounds = torch.arange(GOAL_ROUNDS, device=device).view(1, GOAL_ROUNDS)
-    key = state.episode_key[env].view(M, 1)
-    step = state.step_count[env].view(M, 1)
-    u = [rng.uniform(key, _TAG_NEW_GOAL, step, human.view(M, 1), rounds, c, dtype=dtype) for c in range(4)]
+    rounds = torch.arange(GOAL_ROUNDS, device=device).view(1, GOAL_ROUNDS, 1)
+    comps = torch.arange(4, device=device).view(1, 1, 4)
+    index = (human.view(M, 1, 1) * GOAL_ROUNDS + rounds) * 4 + comps
+    draws = rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
+                        index, dtype=dtype)  # [M, R, 4]
+    u = draws.unbind(-1)
     if cfg.scenario == "circle":
         cand = _circle_points(cfg, u[0], u[1], u[2])  # [M, R, 2]
     else:

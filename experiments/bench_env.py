@@ -1,0 +1,356 @@
+"""Environment throughput: batched torch simulator vs a one-episode-at-a-time RVO2 reference.
+
+For every (B, N) it measures env-steps per second (B x steps / seconds) with uniformly random,
+seeded robot actions:
+
+* ``core``: the simulator core alone: action table + ``unicycle_step`` + ``crowd.step`` on a
+  :class:`CrowdState`, with done episodes re-spawned by ``initial_states`` for the next episode
+  ids of the ``train`` stream (what the env does), so resets happen at their natural rate and
+  are timed (``reset%`` is their share of the core time, ``rst/1k`` the resets per 1000
+  env-steps: random actions collide often, so far more than a trained policy's; ``no-reset``
+  is the core's rate with the reset time taken out);
+* ``env``: the same through :class:`CrowdNavEnv` and TorchRL's ``step_and_maybe_reset`` (the
+  collector's loop), showing the TensorDict/TorchRL overhead;
+* ``ref``: :class:`~crowdrl.sim.reference.ReferenceCrowdSim` (plain Python + RVO2) stepping the
+  same scenes one env at a time, as reference simulators do; independent of B, so measured
+  once per N on ``--ref-steps`` steps in total, median of three runs (building a new simulator at every reset is
+  timed; drawing the initial state is not: it is generated beforehand by ``initial_states``).
+  ``xref`` = core / ref.
+
+Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
+(printed once) is measured in a fresh subprocess at B=4096, N=10: the kernel's RSS high-water
+mark (``VmHWM``, reset through ``/proc/self/clear_refs`` just before) while building the state
+and while taking two steps, minus the RSS just before each; it includes every transient tensor
+of the step (``ru_maxrss`` cannot be reset and stays at the import peak, so it is only a
+fallback).
+
+Usage::
+
+    python experiments/bench_env.py --quick
+    python experiments/bench_env.py --threads 1,2 --json > bench.json
+    python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.fast, when importable
+
+The compiled backend builds one graph per (B, N) on first use (minutes with a cold inductor
+cache); the warm-up steps absorb it, but restrict ``--batch-sizes``/``--num-humans`` with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+from crowdrl.sim import crowd
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, unicycle_step
+from crowdrl.sim.rng import episode_keys
+from crowdrl.sim.scenarios import initial_states
+from crowdrl.sim.state import CrowdState
+
+FULL_B = (1, 64, 256, 1024, 4096)
+FULL_N = (5, 10, 20)
+QUICK_B = (1, 64, 1024)
+QUICK_N = (10,)
+MEM_B, MEM_N = 4096, 10
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def state_bytes(state: CrowdState) -> int:
+    return sum(getattr(state, f.name).nbytes for f in dataclasses.fields(state))
+
+
+def select_step(backend: str):
+    """The batched step function of ``backend``; ``None`` when it is unavailable."""
+    if backend == "torch":
+        return crowd.step
+    try:
+        from crowdrl.sim import fast  # noqa: PLC0415 - optional, written elsewhere
+    except ImportError as exc:
+        log(f"backend 'compiled' is unavailable: crowdrl.sim.fast cannot be imported ({exc})")
+        return None
+    # Route crowd.step (and so the env) through the compiled ORCA; patching this process only.
+    if hasattr(fast, "step"):
+        return fast.step
+    if hasattr(fast, "compiled_human_velocities"):
+        crowd.human_velocities = fast.compiled_human_velocities
+        return crowd.step
+    for name in ("compiled_orca_solve", "orca_solve"):
+        if hasattr(fast, name):
+            crowd.orca_solve = getattr(fast, name)
+            return crowd.step
+    log("backend 'compiled' is unavailable: crowdrl.sim.fast has no step, compiled_human_velocities "
+        "or compiled_orca_solve")
+    return None
+
+
+# ----------------------------------------------------------------------------- batched core
+def bench_core(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, step_fn, max_seconds: float) -> dict:
+    state = initial_states(cfg, episode_keys("train", seed, torch.arange(B)))
+    next_id = B
+    table = action_table(cfg.robot_v_pref)
+    gen = torch.Generator().manual_seed(seed)
+    reset_time = 0.0
+    resets = 0
+
+    def one() -> None:
+        nonlocal state, next_id, reset_time, resets
+        action = torch.randint(0, NUM_ACTIONS, (B,), generator=gen)
+        speed_rot = table[action]
+        heading, velocity = unicycle_step(state.robot_heading, speed_rot[:, 0], speed_rot[:, 1])
+        state, res = step_fn(cfg, state, velocity, heading)
+        done = res.terminated | res.truncated
+        if bool(done.any()):
+            t0 = time.perf_counter()
+            idx = done.nonzero(as_tuple=True)[0]
+            k = idx.numel()
+            fresh = initial_states(cfg, episode_keys("train", seed, torch.arange(next_id, next_id + k)))
+            next_id += k
+            for f in dataclasses.fields(state):
+                getattr(state, f.name)[idx] = getattr(fresh, f.name)
+            reset_time += time.perf_counter() - t0
+            resets += k
+
+    for _ in range(warmup):
+        one()
+    reset_time, resets = 0.0, 0
+    done_steps = 0
+    t0 = time.perf_counter()
+    while done_steps < steps:
+        one()
+        done_steps += 1
+        if time.perf_counter() - t0 > max_seconds and done_steps >= 3:
+            break
+    elapsed = time.perf_counter() - t0
+    return dict(core_steps=done_steps, core_sps=B * done_steps / elapsed, core_ms_per_step=1e3 * elapsed / done_steps,
+                step_only_sps=B * done_steps / max(elapsed - reset_time, 1e-12),
+                reset_share=reset_time / elapsed, resets_per_1k=1e3 * resets / (B * done_steps),
+                state_mb=state_bytes(state) / 2**20)
+
+
+# ------------------------------------------------------------------------------- TorchRL env
+def bench_env(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, max_seconds: float) -> dict:
+    from crowdrl.envs.crowd_nav import CrowdNavEnv  # noqa: PLC0415 - TorchRL import only when needed
+
+    env = CrowdNavEnv(cfg.scenario, num_envs=B, num_humans=cfg.num_humans, seed=seed, split="train", config=cfg)
+    td = env.reset()
+    gen = torch.Generator().manual_seed(seed)
+
+    def one(td):
+        td["action"] = torch.randint(0, NUM_ACTIONS, (B,), generator=gen)
+        _, td = env.step_and_maybe_reset(td)
+        return td
+
+    for _ in range(warmup):
+        td = one(td)
+    done_steps = 0
+    t0 = time.perf_counter()
+    while done_steps < steps:
+        td = one(td)
+        done_steps += 1
+        if time.perf_counter() - t0 > max_seconds and done_steps >= 3:
+            break
+    elapsed = time.perf_counter() - t0
+    return dict(env_steps=done_steps, env_sps=B * done_steps / elapsed)
+
+
+# ------------------------------------------------------------------------ reference (RVO2)
+def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | None:
+    try:
+        from crowdrl.sim.reference import ReferenceCrowdSim  # noqa: PLC0415
+        import pyrvo  # noqa: F401, PLC0415
+    except ImportError as exc:
+        log(f"reference column skipped: {exc}")
+        return None
+    episodes = 64
+    pool = initial_states(cfg, episode_keys("train", seed, torch.arange(episodes)))
+    rng = np.random.default_rng(seed)
+    actions = rng.integers(0, NUM_ACTIONS, size=total_steps + 1)
+    rates = []
+    for _ in range(3):  # short runs on a shared machine: the median of three
+        steps, ep = 0, 0
+        t0 = time.perf_counter()
+        sim = ReferenceCrowdSim.from_state(cfg, pool, 0, seed=seed)
+        while steps < total_steps:
+            _, terminated, truncated, _ = sim.step(int(actions[steps]))
+            steps += 1
+            if terminated or truncated:
+                ep += 1
+                sim = ReferenceCrowdSim.from_state(cfg, pool, ep % episodes, seed=seed + ep)
+        rates.append(steps / (time.perf_counter() - t0))
+    return dict(ref_steps=steps, ref_sps=float(np.median(rates)), ref_sps_runs=rates, ref_episodes=ep)
+
+
+# ------------------------------------------------------------------------------ memory probe
+def _proc_status_mib(field: str) -> float | None:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's RSS high-water mark (VmHWM) of this process (Linux >= 4.0)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def memory_probe(cfg: CrowdConfig, B: int, seed: int, step_fn) -> dict:
+    """Run in a fresh process: resident memory (MiB) of building the state and of stepping it.
+
+    Uses the kernel's peak-RSS counter (VmHWM), reset just before what is measured, so the
+    peak of the import phase does not hide it; falls back to ``ru_maxrss`` (which then may).
+    """
+    table = action_table(cfg.robot_v_pref)
+    gen = torch.Generator().manual_seed(seed)
+
+    def one(state):
+        speed_rot = table[torch.randint(0, NUM_ACTIONS, (state.batch_size,), generator=gen)]
+        heading, velocity = unicycle_step(state.robot_heading, speed_rot[:, 0], speed_rot[:, 1])
+        return step_fn(cfg, state, velocity, heading)[0]
+
+    one(initial_states(cfg, episode_keys("train", seed, torch.arange(8))))  # lazy allocations at small B
+    exact = _reset_peak_rss()
+    rss0 = _proc_status_mib("VmRSS")
+    state = initial_states(cfg, episode_keys("train", seed, torch.arange(B)))
+    peak_init = _proc_status_mib("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss1 = _proc_status_mib("VmRSS")
+    exact = exact and _reset_peak_rss()
+    for _ in range(2):
+        state = one(state)
+    peak_step = _proc_status_mib("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return dict(B=B, N=cfg.num_humans, state_mb=state_bytes(state) / 2**20, method="VmHWM" if exact else "ru_maxrss",
+                rss_init_delta_mb=peak_init - rss0, rss_step_delta_mb=peak_step - rss1)
+
+
+def run_memory_probe(args) -> dict | None:
+    cmd = [sys.executable, os.path.abspath(__file__), "--_memprobe", "--threads", str(args.threads[0]),
+           "--backend", args.backend, "--scenario", args.scenario, "--seed", str(args.seed)]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=300)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+    except (subprocess.SubprocessError, ValueError, IndexError) as exc:
+        log(f"memory probe failed: {exc}")
+        return None
+
+
+# ------------------------------------------------------------------------------------ main
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help=f"B in {QUICK_B}, N in {QUICK_N}, fewer steps (< 1 min)")
+    p.add_argument("--json", action="store_true", help="machine-readable output on stdout (progress on stderr)")
+    p.add_argument("--threads", default="1", help="torch threads, or a comma list to compare (e.g. 1,2)")
+    p.add_argument("--steps", type=int, default=None, help="timed steps per (B, N) (default 30, quick 10)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed steps first")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="stop timing a (B, N) after this long once 3 steps are done (default 15, quick 4)")
+    p.add_argument("--ref-steps", type=int, default=None, help="reference steps per N (default 400, quick 150)")
+    p.add_argument("--batch-sizes", default=None, help="comma list overriding the B values")
+    p.add_argument("--num-humans", default=None, help="comma list overriding the N values")
+    p.add_argument("--scenario", default="circle", choices=("circle", "square"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-env", action="store_true", help="skip the CrowdNavEnv column")
+    p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
+    p.add_argument("--backend", default="torch", choices=("torch", "compiled"),
+                   help="'compiled' steps with crowdrl.sim.fast when it can be imported")
+    p.add_argument("--_memprobe", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    args.threads = [int(t) for t in str(args.threads).split(",")]
+    args.steps = args.steps or (10 if args.quick else 30)
+    args.max_seconds = args.max_seconds or (4.0 if args.quick else 15.0)
+    args.ref_steps = args.ref_steps or (150 if args.quick else 400)
+    args.batch_sizes = [int(b) for b in args.batch_sizes.split(",")] if args.batch_sizes else list(
+        QUICK_B if args.quick else FULL_B)
+    args.num_humans = [int(n) for n in args.num_humans.split(",")] if args.num_humans else list(
+        QUICK_N if args.quick else FULL_N)
+    return args
+
+
+def fmt(x, spec):
+    return "-" if x is None else format(x, spec)
+
+
+def print_table(rows: list[dict], memory: dict | None, meta: dict) -> None:
+    print(f"# {meta['backend']} backend, scenario {meta['scenario']}, torch {meta['torch']}, "
+          f"{meta['cpus']} CPUs, random actions, env-steps/s = B * steps / s")
+    head = f"{'thr':>3} {'N':>3} {'B':>5} {'core sps':>10} {'ms/step':>8} {'reset%':>6} {'rst/1k':>6} " \
+           f"{'no-reset':>10} {'env sps':>10} {'ref sps':>8} {'xref':>7} {'state MB':>8}"
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['threads']:>3} {r['N']:>3} {r['B']:>5} {r['core_sps']:>10.0f} {r['core_ms_per_step']:>8.2f} "
+              f"{100 * r['reset_share']:>6.1f} {r['resets_per_1k']:>6.1f} {r['step_only_sps']:>10.0f} "
+              f"{fmt(r.get('env_sps'), '>10.0f')} {fmt(r.get('ref_sps'), '>8.0f')} "
+              f"{fmt(r.get('speedup_vs_ref'), '>7.1f')} {r['state_mb']:>8.3f}")
+    if memory:
+        print(f"# memory at B={memory['B']}, N={memory['N']} (fresh process, peak RSS by {memory['method']}): "
+              f"state tensors {memory['state_mb']:.2f} MiB; peak RSS above the prior RSS: "
+              f"{memory['rss_init_delta_mb']:.1f} MiB building the state (initial_states), "
+              f"{memory['rss_step_delta_mb']:.1f} MiB during two steps")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    step_fn = select_step(args.backend)
+    if step_fn is None:
+        if args.json:
+            print(json.dumps({"backend": args.backend, "available": False}))
+        return 2
+    torch.set_num_threads(args.threads[0])
+
+    if args._memprobe:
+        print(json.dumps(memory_probe(CrowdConfig(scenario=args.scenario, num_humans=MEM_N), MEM_B, args.seed, step_fn)))
+        return 0
+
+    rows = []
+    ref_cache: dict[int, dict | None] = {}
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.num_humans:
+            cfg = CrowdConfig(scenario=args.scenario, num_humans=n)
+            if n not in ref_cache:
+                ref_cache[n] = bench_reference(cfg, args.ref_steps, args.seed)
+                if ref_cache[n]:
+                    log(f"ref N={n}: {ref_cache[n]['ref_sps']:.0f} steps/s")
+            ref = ref_cache[n]
+            for b in args.batch_sizes:
+                row = dict(threads=threads, N=n, B=b)
+                row.update(bench_core(cfg, b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
+                if not args.no_env:
+                    row.update(bench_env(cfg, b, args.steps, args.warmup, args.seed, args.max_seconds))
+                if ref:
+                    row.update(ref_sps=ref["ref_sps"], speedup_vs_ref=row["core_sps"] / ref["ref_sps"])
+                rows.append(row)
+                log(f"threads={threads} N={n} B={b}: core {row['core_sps']:.0f} env {row.get('env_sps', 0):.0f} steps/s")
+    memory = None if args.no_memory else run_memory_probe(args)
+    meta = dict(backend=args.backend, scenario=args.scenario, torch=torch.__version__, cpus=os.cpu_count(),
+                python=platform.python_version(), machine=platform.machine(), seed=args.seed,
+                steps=args.steps, warmup=args.warmup, ref_steps=args.ref_steps)
+    if args.json:
+        print(json.dumps(dict(meta=meta, rows=rows, memory=memory, reference=ref_cache), indent=1))
+    else:
+        print_table(rows, memory, meta)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
