@@ -1,5 +1,6 @@
-"""Rendering of crowd-navigation episodes: static PNG summaries and animated GIFs."""
+"""Rendering: episode PNG summaries, animated GIFs, learning curves."""
 
+from crowdrl.viz.curves import plot_learning_curves
 from crowdrl.viz.trajectory import (
     TIME_STAMP_GID,
     Trajectory,
@@ -7,4 +8,4 @@ from crowdrl.viz.trajectory import (
     plot_trajectory,
 )
 
-__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "TIME_STAMP_GID"]
+__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "plot_learning_curves", "TIME_STAMP_GID"]

@@ -1,0 +1,227 @@
+"""SG-D3QN's graph attention encoder (``SPEC.md`` §2), optimised for CPU training.
+
+Architecture (the authors' ``GAT_RL`` with skip connections):
+
+* ``w_r``: Linear(9, 64)-ReLU-Linear(64, 32)-ReLU on the robot state, ``w_h``:
+  Linear(5, 64)-ReLU-Linear(64, 32)-ReLU on each human; ``X = [w_r(robot); w_h(humans)]``
+  ``[B, N+1, 32]``, the robot being node 0.
+* two graph attention layers ``gat0``, ``gat1``, each with the pairwise scoring MLP
+  ``w_a`` = Linear(64, 64)-ReLU-Linear(64, 1) on ``[h_i, h_j]``,
+  ``e_ij = LeakyReLU_0.04(w_a([h_i, h_j]))``, ``A = masked softmax_j(e)``, ``H' = A H``;
+  ``H1 = gat0(X)``, ``H2 = gat1(H1)``.
+* output ``X + H1 + H2``; the robot node's row ``[B, 32]`` is the state embedding.
+
+Masking (upstream ``GAT_RL.compute_adjectory_matrix``): the adjacency is all ones except
+``adj[i, 0] = 0`` for every human ``i >= 1``, i.e. **humans do not attend to the robot** (the
+robot is invisible to the humans, as in the simulator), while the robot row attends to every
+node, itself included, and every human attends to itself and to all other humans. Upstream
+filled masked logits with ``-9e15`` before the softmax; we use ``-inf``: both give masked
+weights of exactly 0, and no row is ever fully masked (every row keeps at least its own node).
+
+Optimisations (the function is the same as :class:`SGD3QNEncoderNaive`'s, which applies the
+``nn.Sequential`` MLPs to the concatenated pairs; parameters and ``state_dict`` are shared):
+
+* the first scoring layer is split: ``W [h_i; h_j] + b = W_1 h_i + (W_2 h_j + b)`` with
+  ``W = [W_1 | W_2]``, so the two ``32 -> 64`` products are computed per node, not per pair;
+  the pairwise work is one broadcast add, a ReLU and a dot with the ``64 -> 1`` weights, done by
+  :class:`_PairwiseScore`, a hand-written autograd function that keeps one ``[B, R, C, 64]``
+  tensor and reuses it in its backward (fewer passes and allocations than autograd's chain;
+  its backward can run only once per forward, a second one raises);
+* the softmax over the N+1 nodes is written out (:func:`_softmax_last`), ATen's kernel being
+  slow for such short rows;
+* only the robot node's output is used, so layer 2 is evaluated for the robot row only
+  (``[B, 1, N+1, 64]`` instead of ``[B, N+1, N+1, 64]``); layer 1 is evaluated for all rows,
+  since its outputs are layer 2's inputs.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
+
+from crowdrl.models.registry import register_encoder
+
+ROBOT_RC_DIM = 9
+HUMAN_RC_DIM = 5
+LEAKY_SLOPE = 0.04
+
+
+def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    """Linear-ReLU-Linear-ReLU (upstream ``mlp(..., last_relu=True)``)."""
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim), nn.ReLU())
+
+
+class GraphAttentionLayer(nn.Module):
+    """Holds one layer's scoring MLP ``w_a``: Linear(2D, 2D)-ReLU-Linear(2D, 1) on ``[h_i, h_j]``."""
+
+    def __init__(self, dim: int = 32) -> None:
+        super().__init__()
+        self.dim = int(dim)
+        self.w_a = nn.Sequential(nn.Linear(2 * dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, 1))
+
+
+class _PairwiseScore(torch.autograd.Function):
+    """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :])``.
+
+    ``rows [*, R, K]``, ``cols [*, C, K]`` (same leading dims), ``w [K]`` -> ``[*, R, C]``.
+    Saves only the ReLU output ``h [*, R, C, K]`` (its sign is the ReLU mask, since ``h >= 0``)
+    and reuses its memory in the backward, which makes fewer passes over ``[*, R, C, K]`` and
+    fewer allocations than autograd's generic add/relu/matmul chain. Not twice differentiable,
+    and its backward can run only once per forward.
+    """
+
+    @staticmethod
+    def forward(ctx, rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
+        h = rows.unsqueeze(-2) + cols.unsqueeze(-3)
+        h.relu_()
+        ctx.save_for_backward(h, w)
+        return torch.matmul(h, w.unsqueeze(-1)).squeeze(-1)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        h, w = ctx.saved_tensors
+        need_rows, need_cols, need_w = ctx.needs_input_grad
+        grad_rows = grad_cols = grad_w = None
+        k = h.shape[-1]
+        if need_w:
+            grad_w = torch.matmul(grad.reshape(1, -1), h.reshape(-1, k)).reshape(k)
+        if need_rows or need_cols:
+            # h >= 0, so sign(h) is the ReLU mask; computed in place to avoid a fresh
+            # [*, R, C, K] allocation. h's version counter moves, so a second backward through
+            # this node (retain_graph=True) raises instead of using the overwritten tensor.
+            gm = h.sign_().mul_(grad.unsqueeze(-1))  # d score / d pre-activation, without w
+            if need_rows:
+                grad_rows = gm.sum(-2) * w
+            if need_cols:
+                grad_cols = gm.sum(-3) * w
+        return grad_rows, grad_cols, grad_w
+
+
+def _softmax_last(logits: Tensor) -> Tensor:
+    """``softmax(logits, -1)`` for a short last dim (the N+1 nodes).
+
+    Same values and gradient as ``torch.softmax``; about 3x cheaper on CPU for rows of ~10,
+    where ATen's softmax kernel is slow. The max is detached: softmax does not depend on the
+    shift, so its gradient through the max is exactly zero.
+    """
+    e = torch.exp(logits - logits.detach().amax(dim=-1, keepdim=True))
+    return e / e.sum(dim=-1, keepdim=True)
+
+
+def _attend(layer: GraphAttentionLayer, queries: Tensor, nodes: Tensor, mask: Tensor | None) -> Tensor:
+    """One attention layer for the rows ``queries [B, R, D]`` over ``nodes [B, C, D]``.
+
+    ``mask [R, C]`` (bool, True = not attended) or ``None``. Same function as applying
+    ``layer.w_a`` to every concatenated pair ``[q_r, n_c]``.
+    """
+    lin1, lin2 = layer.w_a[0], layer.w_a[2]
+    d = queries.shape[-1]
+    rows = F.linear(queries, lin1.weight[:, :d])
+    cols = F.linear(nodes, lin1.weight[:, d:], lin1.bias)
+    scores = _PairwiseScore.apply(rows, cols, lin2.weight.reshape(-1)) + lin2.bias
+    logits = F.leaky_relu(scores, LEAKY_SLOPE)
+    if mask is not None:
+        logits = logits.masked_fill(mask, float("-inf"))
+    return torch.matmul(_softmax_last(logits), nodes)
+
+
+def human_mask(num_nodes: int, device: torch.device | None = None) -> Tensor:
+    """``[N+1, N+1]`` bool, True where attention is masked: human rows (``i >= 1``), robot column (``j = 0``)."""
+    mask = torch.zeros(num_nodes, num_nodes, dtype=torch.bool, device=device)
+    mask[1:, 0] = True
+    return mask
+
+
+@register_encoder("sgd3qn")
+class SGD3QNEncoder(nn.Module):
+    """SG-D3QN graph attention encoder: ``(robot_rc [*, 9], humans_rc [*, N, 5]) -> [*, 32]``.
+
+    Works for any ``N >= 1`` and any leading batch dims (including none). See the module
+    docstring for the architecture, the masking convention and the optimisations.
+    """
+
+    def __init__(
+        self,
+        robot_dim: int = ROBOT_RC_DIM,
+        human_dim: int = HUMAN_RC_DIM,
+        hidden_dim: int = 64,
+        embedding_dim: int = 32,
+    ) -> None:
+        super().__init__()
+        self.robot_dim = int(robot_dim)
+        self.human_dim = int(human_dim)
+        self.embedding_dim = int(embedding_dim)
+        self.w_r = _mlp(robot_dim, hidden_dim, embedding_dim)
+        self.w_h = _mlp(human_dim, hidden_dim, embedding_dim)
+        self.gat0 = GraphAttentionLayer(embedding_dim)
+        self.gat1 = GraphAttentionLayer(embedding_dim)
+        self._mask_cache: dict[tuple[int, torch.device], Tensor] = {}
+
+    def _check(self, robot_rc: Tensor, humans_rc: Tensor) -> tuple[torch.Size, int]:
+        if robot_rc.shape[-1:] != (self.robot_dim,):
+            raise ValueError(f"robot_rc must be shaped [..., {self.robot_dim}], got {tuple(robot_rc.shape)}")
+        if humans_rc.dim() < 2 or humans_rc.shape[-1] != self.human_dim or humans_rc.shape[:-2] != robot_rc.shape[:-1]:
+            raise ValueError(
+                f"humans_rc must be shaped [..., N, {self.human_dim}] with batch {tuple(robot_rc.shape[:-1])}, "
+                f"got {tuple(humans_rc.shape)}"
+            )
+        if humans_rc.shape[-2] < 1:
+            raise ValueError("SGD3QNEncoder needs at least one human")
+        return robot_rc.shape[:-1], humans_rc.shape[-2]
+
+    def node_features(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
+        """``X [B, N+1, D]`` with the batch flattened; the robot is node 0."""
+        n = humans_rc.shape[-2]
+        robot = self.w_r(robot_rc.reshape(-1, 1, self.robot_dim))
+        humans = self.w_h(humans_rc.reshape(-1, n, self.human_dim))
+        return torch.cat((robot, humans), dim=1)
+
+    def _mask(self, num_nodes: int, device: torch.device) -> Tensor:
+        key = (num_nodes, device)
+        mask = self._mask_cache.get(key)
+        if mask is None:
+            mask = self._mask_cache[key] = human_mask(num_nodes, device)
+        return mask
+
+    def first_layer(self, x: Tensor) -> Tensor:
+        """``H1 = gat0(X)`` for every node, ``[B, N+1, D]``."""
+        return _attend(self.gat0, x, x, self._mask(x.shape[-2], x.device))
+
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
+        lead, _ = self._check(robot_rc, humans_rc)
+        x = self.node_features(robot_rc, humans_rc)
+        h1 = self.first_layer(x)
+        h2_robot = _attend(self.gat1, h1[:, :1], h1, None)  # the robot row attends to every node
+        out = x[:, 0] + h1[:, 0] + h2_robot[:, 0]
+        return out.reshape(*lead, self.embedding_dim)
+
+
+class SGD3QNEncoderNaive(SGD3QNEncoder):
+    """Reference implementation of the same function (same parameters), written as upstream:
+    every ``[h_i, h_j]`` pair is concatenated and fed to the ``nn.Sequential`` scoring MLP, and
+    both layers are computed for every node. Slow; for tests and benchmarks."""
+
+    @staticmethod
+    def _naive_attend(layer: GraphAttentionLayer, h: Tensor, mask: Tensor) -> Tensor:
+        m = h.shape[-2]
+        pairs = torch.cat((h.unsqueeze(-2).expand(-1, m, m, -1), h.unsqueeze(-3).expand(-1, m, m, -1)), dim=-1)
+        logits = F.leaky_relu(layer.w_a(pairs).squeeze(-1), LEAKY_SLOPE)
+        logits = logits.masked_fill(mask, float("-inf"))
+        return torch.matmul(torch.softmax(logits, dim=-1), h)
+
+    def naive_layers(self, robot_rc: Tensor, humans_rc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(X, H1, H2)`` for every node, batch flattened."""
+        self._check(robot_rc, humans_rc)
+        x = self.node_features(robot_rc, humans_rc)
+        mask = human_mask(x.shape[-2], x.device)
+        h1 = self._naive_attend(self.gat0, x, mask)
+        h2 = self._naive_attend(self.gat1, h1, mask)
+        return x, h1, h2
+
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
+        lead, _ = self._check(robot_rc, humans_rc)
+        x, h1, h2 = self.naive_layers(robot_rc, humans_rc)
+        return (x + h1 + h2)[:, 0].reshape(*lead, self.embedding_dim)

@@ -1,0 +1,10 @@
+"""D3QN training: config schema, n-step replay, trainer, checkpoints, run pipeline."""
+
+from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from crowdrl.training.config import ConfigError, RunConfig, validate
+from crowdrl.training.nstep import NStepReturn, nstep_transitions
+from crowdrl.training.pipeline import evaluate_best, run_training
+from crowdrl.training.trainer import Trainer
+
+__all__ = ["CheckpointError", "ConfigError", "NStepReturn", "RunConfig", "Trainer", "evaluate_best",
+           "load_checkpoint", "nstep_transitions", "run_training", "save_checkpoint", "validate"]

@@ -1,0 +1,74 @@
+"""Atomic checkpoints with a config fingerprint, so a resume never mixes runs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+FORMAT_VERSION = 1
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, truncated, of another format, or from another config."""
+
+
+def config_fingerprint(config: dict) -> str:
+    """Hash of the parts of a config that define the learning problem (not budgets or logging)."""
+    keep = {k: config[k] for k in ("env", "encoder", "exploration", "seed") if k in config}
+    train = dict(config.get("train", {}))
+    for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
+              "val_episodes"):
+        train.pop(k, None)
+    keep["train"] = train
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the new one, never half."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any], fingerprint: str) -> None:
+    """``torch.save`` the payload with format/fingerprint metadata, atomically."""
+    import io
+
+    buf = io.BytesIO()
+    torch.save({"format": FORMAT_VERSION, "fingerprint": fingerprint, **payload}, buf)
+    atomic_write_bytes(Path(path), buf.getvalue())
+
+
+def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any]:
+    """Load and check a checkpoint; raise :class:`CheckpointError` with the reason otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise CheckpointError(f"{path} is not a readable checkpoint (truncated or corrupt?): {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT_VERSION:
+        raise CheckpointError(f"{path} is not a crowdrl checkpoint of format {FORMAT_VERSION}")
+    if fingerprint is not None and data.get("fingerprint") != fingerprint:
+        raise CheckpointError(
+            f"{path} was written by a run with another configuration (fingerprint {data.get('fingerprint')} "
+            f"!= {fingerprint}); resume it with its own config (see config.yaml in its run folder)"
+        )
+    return data

@@ -1,0 +1,155 @@
+"""Typed run configuration: the Hydra tree in ``conf/`` is checked against these dataclasses.
+
+``validate(cfg)`` turns a Hydra/OmegaConf tree into a :class:`RunConfig` and fails at once on
+an unknown key, a wrong type or an out-of-range value, naming the key and what is allowed.
+
+Budgets are counted in frames (env steps of the robot). The paper counts episodes; an episode
+of the trained policy lasts about 45–50 steps (11–12 s at 0.25 s), early ones fewer, so the
+paper's 10k episodes are ≈ 0.5M frames and its schedules convert at 50 frames per episode
+(ε-greedy over 4000 episodes = 200k frames, target copy every 500 episodes = 25k frames).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from crowdrl.models import ENCODERS
+from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
+
+FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
+EXPLORATIONS = ("egreedy",)
+LOGGERS = ("wandb", "csv")
+WANDB_MODES = ("offline", "online", "disabled")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or out of range."""
+
+
+@dataclass
+class EnvConfig:
+    scenario: str = "circle"
+    num_humans: int = 10
+
+
+@dataclass
+class EncoderConfig:
+    name: str = "sgd3qn"
+
+
+@dataclass
+class ExplorationConfig:
+    name: str = "egreedy"
+    eps_start: float = 0.5
+    eps_end: float = 0.1
+    anneal_frames: int = 4000 * FRAMES_PER_EPISODE
+
+
+@dataclass
+class LoggerConfig:
+    name: str = "wandb"
+    mode: str = "offline"  # wandb mode; WANDB_MODE in the environment overrides it
+    project: str = "crowdrl"
+    progress_bar: bool = True
+
+
+@dataclass
+class TrainConfig:
+    num_envs: int = 16  # environments stepped at once by the collector
+    steps_per_batch: int = 8  # steps per environment per collected batch
+    total_frames: int = 10_000 * FRAMES_PER_EPISODE
+    buffer_size: int = 100_000
+    batch_size: int = 100
+    n_step: int = 1
+    gamma: float = 0.9 ** 0.25  # 0.974 per 0.25 s step at v_pref 1
+    lr: float = 1e-3
+    updates_per_frame: float = 1.0
+    warmup_frames: int = 1_000  # collect this many frames before the first update
+    target_update_frames: int = 500 * FRAMES_PER_EPISODE
+    val_every_frames: int = 500 * FRAMES_PER_EPISODE
+    val_episodes: int = 100
+    checkpoint_every_frames: int = 25_000
+    save_buffer: bool = False
+    test_episodes: int = 1000
+
+
+@dataclass
+class RunConfig:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    preset: str = "paper"
+    seed: int = 0
+    threads: int = 1
+    device: str = "cpu"
+    resume: str | None = None
+    run_dir: str | None = None
+
+
+def _check(cond: bool, key: str, msg: str) -> None:
+    if not cond:
+        raise ConfigError(f"{key}: {msg}")
+
+
+def _one_of(value: Any, key: str, allowed: tuple | list) -> None:
+    _check(value in allowed, key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
+
+
+def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
+    """Check a config tree against the schema and the allowed values; return it typed."""
+    if isinstance(cfg, RunConfig):
+        cfg = OmegaConf.structured(cfg)
+    schema = OmegaConf.structured(RunConfig)
+    try:
+        merged = OmegaConf.merge(schema, OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg)
+    except Exception as exc:  # omegaconf's messages name the key; keep them
+        raise ConfigError(str(exc).splitlines()[0] + _hint(exc)) from None
+    run: RunConfig = OmegaConf.to_object(merged)
+    e, t, x = run.env, run.train, run.exploration
+    _one_of(e.scenario, "env.scenario", SCENARIOS)
+    _check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
+    _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
+    _one_of(x.name, "exploration.name", EXPLORATIONS)
+    _check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",
+           f"need 0 <= eps_end <= eps_start <= 1, got {x.eps_start} -> {x.eps_end}")
+    _check(x.anneal_frames >= 1, "exploration.anneal_frames", f"must be >= 1, got {x.anneal_frames}")
+    _one_of(run.logger.name, "logger.name", LOGGERS)
+    _one_of(run.logger.mode, "logger.mode", WANDB_MODES)
+    for key in ("num_envs", "steps_per_batch", "total_frames", "buffer_size", "batch_size", "n_step",
+                "target_update_frames", "val_every_frames", "val_episodes", "checkpoint_every_frames", "test_episodes"):
+        value = getattr(t, key)
+        _check(value >= 1, f"train.{key}", f"must be >= 1, got {value}")
+    _check(t.warmup_frames >= 0, "train.warmup_frames", f"must be >= 0, got {t.warmup_frames}")
+    _check(t.batch_size <= t.buffer_size, "train.batch_size",
+           f"({t.batch_size}) must not exceed train.buffer_size ({t.buffer_size})")
+    _check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")
+    _check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
+    _check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
+    _check(run.seed >= 0, "seed", f"must be >= 0, got {run.seed}")
+    _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
+    _check(run.device == "cpu" or run.device.startswith("cuda"), "device", f"got {run.device!r}; allowed: cpu, cuda[:i]")
+    return run
+
+
+def _hint(exc: Exception) -> str:
+    key = getattr(exc, "full_key", None)
+    if not key:
+        return ""
+    parent = key.rsplit(".", 1)[0] if "." in key else ""
+    node: Any = RunConfig()
+    for part in filter(None, parent.split(".")):
+        node = getattr(node, part, None)
+    if dataclasses.is_dataclass(node):
+        return f" (key {key!r}; allowed keys here: {', '.join(f.name for f in dataclasses.fields(node))})"
+    return f" (key {key!r})"
+
+
+def to_dict(run: RunConfig) -> dict:
+    """Plain nested dict of a run config (for logging and checkpoints)."""
+    return dataclasses.asdict(run)

@@ -1,0 +1,88 @@
+"""Run logging: every scalar to CSV/JSONL in the run folder, optionally mirrored to wandb."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+
+class ScalarLog:
+    """Append-only scalar log with one JSON line per row (``scalars.jsonl``), fsynced per row.
+
+    ``scalars.csv`` is rewritten from it at ``close``/``flush_csv`` (columns can appear over
+    time). On resume, ``truncate_after(frames)`` drops rows written after the checkpoint being
+    resumed, and a half-written last line from a kill.
+    """
+
+    def __init__(self, run_dir: Path) -> None:
+        self.dir = Path(run_dir)
+        self.path = self.dir / "scalars.jsonl"
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "a", encoding="utf-8")
+
+    def log(self, row: dict[str, Any]) -> None:
+        self._f.write(json.dumps(row, sort_keys=True) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+
+    def rows(self) -> list[dict[str, Any]]:
+        out = []
+        if self.path.exists():
+            for line in self.path.read_text(encoding="utf-8").splitlines():
+                try:
+                    out.append(json.loads(line))
+                except json.JSONDecodeError:
+                    break  # a line cut by a kill: everything after it is lost anyway
+        return out
+
+    def truncate_after(self, frames: int) -> int:
+        """Keep rows with ``frames <= frames``; return how many rows were dropped."""
+        self._f.close()
+        rows = self.rows()
+        kept = [r for r in rows if r.get("frames", 0) <= frames]
+        tmp = self.path.with_suffix(".jsonl.tmp")
+        tmp.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in kept), encoding="utf-8")
+        os.replace(tmp, self.path)
+        self._f = open(self.path, "a", encoding="utf-8")
+        return len(rows) - len(kept)
+
+    def flush_csv(self) -> Path:
+        rows = self.rows()
+        columns = sorted({k for r in rows for k in r})
+        first = [c for c in ("kind", "frames", "updates", "episodes") if c in columns]
+        columns = first + [c for c in columns if c not in first]
+        path = self.dir / "scalars.csv"
+        tmp = path.with_suffix(".csv.tmp")
+        with open(tmp, "w", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=columns)
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, path)
+        return path
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+        self.flush_csv()
+
+
+class WandbMirror:
+    """Mirror of the scalar rows into a wandb run (offline unless the mode says otherwise)."""
+
+    def __init__(self, run_dir: Path, config: dict, project: str, mode: str, resume_id: str | None) -> None:
+        import wandb
+
+        os.environ.setdefault("WANDB_SILENT", "true")
+        mode = os.environ.get("WANDB_MODE", mode)
+        self.run = wandb.init(project=project, dir=str(run_dir), config=config, mode=mode,
+                              id=resume_id, resume="allow" if resume_id else None, reinit="finish_previous")
+        self.id = self.run.id
+
+    def log(self, row: dict[str, Any]) -> None:
+        self.run.log({k: v for k, v in row.items() if isinstance(v, (int, float))}, step=int(row.get("frames", 0)))
+
+    def close(self) -> None:
+        self.run.finish()

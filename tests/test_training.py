@@ -1,0 +1,205 @@
+"""Learning pipeline: n-step targets, config validation, checkpoints, resume, Hydra runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.objectives import DQNLoss
+
+from crowdrl.models import make_q_actor
+from crowdrl.training import CheckpointError, ConfigError, NStepReturn, load_checkpoint, nstep_transitions, validate
+from crowdrl.training.checkpoint import save_checkpoint
+from crowdrl.training.config import RunConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
+
+
+def _toy_batch():
+    """One env, 6 steps: a collision (terminated) at t=2 and a timeout (truncated) at t=4."""
+    T = 6
+    r = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]])
+    term = torch.tensor([[0, 0, 1, 0, 0, 0]]).bool()
+    trunc = torch.tensor([[0, 0, 0, 0, 1, 0]]).bool()
+    obs = torch.arange(T, dtype=torch.float32).view(1, T, 1)
+    return TensorDict({
+        "obs": obs, "action": torch.zeros(1, T, dtype=torch.long),
+        "next": {"obs": obs + 0.5, "reward": r.unsqueeze(-1), "terminated": term.unsqueeze(-1),
+                 "truncated": trunc.unsqueeze(-1), "done": (term | trunc).unsqueeze(-1)},
+    }, [1, T])
+
+
+def test_nstep_never_bootstraps_through_a_termination():
+    g = 0.5
+    out = nstep_transitions(_toy_batch(), 3, g, ["obs"])
+    # hand-computed: t=0 sees 1, 2, 3 and the collision; t=3 sees 4, 5 and the timeout (bootstraps)
+    assert out["next", "reward"].view(-1).tolist() == [1 + g * 2 + g * g * 3, 2 + g * 3, 3, 4 + g * 5, 5, 6]
+    assert out["steps_to_next_obs"].view(-1).tolist() == [3, 2, 1, 2, 1, 1]
+    assert out["next", "terminated"].view(-1).tolist() == [True, True, True, False, False, False]
+    assert out["next", "obs"].view(-1).tolist() == [2.5, 2.5, 2.5, 4.5, 4.5, 5.5]
+
+
+def test_nstep_target_in_dqn_loss_matches_hand_computation():
+    """The full D3QN target of an n-step transition: r_n + γ^m (1 - terminated) Q_target(s', argmax Q(s'))."""
+    from crowdrl.envs import CrowdNavEnv, RobotCentric
+    from torchrl.envs import TransformedEnv
+
+    torch.manual_seed(0)
+    env = TransformedEnv(CrowdNavEnv("circle", num_envs=1, num_humans=3), RobotCentric())
+    actor = make_q_actor("sgd3qn", env.base_env.action_spec)
+    loss = DQNLoss(actor, delay_value=True, double_dqn=True, loss_function="l2", action_space=env.base_env.action_spec)
+    g = 0.9
+    loss.make_value_estimator(gamma=g)
+    roll = env.rollout(4, break_when_any_done=False)  # [1, 4]
+    roll["next", "reward"] = torch.tensor([[[1.0], [2.0], [3.0], [4.0]]])
+    roll["next", "terminated"] = torch.tensor([[[False], [True], [False], [False]]])
+    roll["next", "done"] = roll["next", "terminated"].clone()
+    keys = ["robot_rc", "humans_rc"]
+    trans = nstep_transitions(roll.select(*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]),
+                              3, g, keys).reshape(-1)
+    net = actor.module[0].module
+    with torch.no_grad():
+        for p in loss.target_value_network_params.values(True, True):
+            p.add_(0.01 * torch.randn_like(p))  # a target network that differs from the online one
+        q_next_online = net(trans["next", "robot_rc"], trans["next", "humans_rc"])
+        with loss.target_value_network_params.to_module(actor):
+            q_next_target = net(trans["next", "robot_rc"], trans["next", "humans_rc"])
+        q_now = net(trans["robot_rc"], trans["humans_rc"]).gather(-1, trans["action"].view(-1, 1)).squeeze(-1)
+    boot = q_next_target.gather(-1, q_next_online.argmax(-1, keepdim=True)).squeeze(-1)
+    # t=0: 1 + .9*2, collision at t=1 -> no bootstrap; t=2: 3 + .9*4, then bootstrap with .9^2
+    expected_target = torch.tensor([1 + g * 2, 2.0, 3 + g * 4 + g ** 2 * boot[2], 4 + g * boot[3]])
+    expected = ((q_now - expected_target) ** 2).mean()
+    got = loss(trans)["loss"]
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_nstep_transform_flattens_into_the_buffer():
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4, transform=NStepReturn(2, 0.5, ["obs"]))
+    rb.extend(_toy_batch())
+    assert len(rb) == 6
+    assert set(rb.sample()["steps_to_next_obs"].view(-1).tolist()) <= {1, 2}
+
+
+def test_nstep_rejects_bad_n():
+    with pytest.raises(ValueError, match="n-step"):
+        NStepReturn(0, 0.9, ["obs"])
+
+
+# --------------------------------------------------------------------------- config
+@pytest.mark.parametrize(
+    "override, word",
+    [
+        ({"encoder": {"name": "transformer"}}, "encoder.name"),
+        ({"exploration": {"name": "boltzmann"}}, "exploration.name"),
+        ({"env": {"scenario": "corridor"}}, "env.scenario"),
+        ({"env": {"num_humans": 0}}, "env.num_humans"),
+        ({"train": {"total_frames": 0}}, "train.total_frames"),
+        ({"train": {"total_frames": -5}}, "train.total_frames"),
+        ({"train": {"n_step": 0}}, "train.n_step"),
+        ({"train": {"batch_size": 500, "buffer_size": 100}}, "train.batch_size"),
+        ({"train": {"lerning_rate": 0.1}}, "lerning_rate"),
+        ({"train": {"lr": "fast"}}, "lr"),
+        ({"logger": {"mode": "cloud"}}, "logger.mode"),
+    ],
+)
+def test_bad_config_fails_naming_the_key(override, word):
+    with pytest.raises(ConfigError, match=word.replace(".", r"\.")):
+        validate(override)
+
+
+def test_unknown_encoder_lists_the_allowed_ones():
+    with pytest.raises(ConfigError, match="allowed: sgd3qn"):
+        validate({"encoder": {"name": "nope"}})
+
+
+def test_default_config_is_valid():
+    run = validate({})
+    assert isinstance(run, RunConfig) and run.train.gamma == pytest.approx(0.974, abs=1e-3)
+
+
+# --------------------------------------------------------------------------- checkpoints
+def test_truncated_or_foreign_checkpoint_is_rejected(tmp_path):
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, {"x": 1}, "abc")
+    assert load_checkpoint(path, "abc")["x"] == 1
+    with pytest.raises(CheckpointError, match="another configuration"):
+        load_checkpoint(path, "def")
+    path.write_bytes(path.read_bytes()[:40])
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        load_checkpoint(path)
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+# --------------------------------------------------------------------------- end to end (Hydra)
+def _env():
+    return {**os.environ, "WANDB_MODE": "offline", "PYTHONPATH": str(ROOT / "src")}
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "scalars.jsonl").read_text().splitlines()]
+
+
+SMOKE = ["preset=smoke", "logger=csv", "train.total_frames=512", "train.checkpoint_every_frames=64",
+         "train.save_buffer=true"]
+
+
+def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
+    ref_dir, run_dir = tmp_path / "ref", tmp_path / "run"
+    subprocess.run(TRAIN + SMOKE + [f"hydra.run.dir={ref_dir}"], check=True, env=_env(), capture_output=True,
+                   timeout=300)
+    proc = subprocess.Popen(TRAIN + SMOKE + [f"hydra.run.dir={run_dir}"], env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = run_dir / "checkpoints" / "last.pt"
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        if ckpt.exists() and load_checkpoint(ckpt)["counters"]["frames"] >= 192:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be killed; make it longer"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = load_checkpoint(ckpt)["counters"]["frames"]
+    before = [r for r in _rows(run_dir) if r["frames"] <= killed_at]
+    assert json.loads((run_dir / "status.json").read_text())["state"] == "running"
+
+    subprocess.run(TRAIN + SMOKE + [f"resume={run_dir}", f"hydra.run.dir={tmp_path / 'scratch'}"], check=True,
+                   env=_env(), capture_output=True, timeout=300)
+    status = json.loads((run_dir / "status.json").read_text())
+    ref = json.loads((ref_dir / "status.json").read_text())
+    assert status["state"] == "completed"
+    assert (status["frames"], status["updates"]) == (ref["frames"], ref["updates"]) == (512, status["updates"])
+    after = _rows(run_dir)
+    assert after[: len(before)] == before, "rows written before the kill must survive unchanged"
+    frames = [r["frames"] for r in after if r["kind"] == "val"]
+    assert frames == sorted(set(frames)), "no duplicated validation rows after the resume"
+    assert not (tmp_path / "scratch").exists(), "a resume must not leave an empty run folder behind"
+
+
+def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):
+    out = tmp_path / "bad"
+    proc = subprocess.run(TRAIN + ["preset=smoke", "encoder.name=transformer", f"hydra.run.dir={out}"],
+                          env=_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0
+    assert "encoder.name" in proc.stderr and "sgd3qn" in proc.stderr
+    assert not out.exists()
+
+
+def test_multirun_two_seeds(tmp_path):
+    proc = subprocess.run(TRAIN + ["-m", "preset=smoke", "logger=csv", "train.total_frames=64", "seed=0,1",
+                                   f"hydra.sweep.dir={tmp_path}"], env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    statuses = sorted(tmp_path.glob("*/status.json"))
+    assert len(statuses) == 2
+    assert all(json.loads(p.read_text())["state"] == "completed" for p in statuses)
