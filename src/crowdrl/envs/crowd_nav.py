@@ -26,6 +26,9 @@ class CrowdNavEnv(EnvBase):
     2 collision, 3 timeout) and ``"episode_id"``. Actions are indices into the 81-action
     unicycle table. Collision and goal terminate; the time limit truncates.
 
+    ``orca_backend="compiled"`` steps the humans with the ``torch.compile`` ORCA of
+    :mod:`crowdrl.sim.fast` (same numbers; compiles for minutes on first use per batch shape).
+
     Episodes come from the ``split`` stream (``train``, ``val`` or ``test``) of ``seed``:
     each (partial) reset takes the next episode ids in sub-env order, unless the reset
     tensordict carries ``"load_episode"`` ``[B, 1]``, in which case those episodes are loaded
@@ -43,6 +46,7 @@ class CrowdNavEnv(EnvBase):
         split: str = "train",
         config: CrowdConfig | None = None,
         dtype: torch.dtype = torch.float32,
+        orca_backend: str = "eager",
     ) -> None:
         if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -51,7 +55,7 @@ class CrowdNavEnv(EnvBase):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if config is None:
-            config = CrowdConfig(scenario=scenario, num_humans=num_humans)
+            config = CrowdConfig(scenario=scenario, num_humans=num_humans, orca_backend=orca_backend)
         elif config.scenario != scenario or config.num_humans != num_humans:
             raise ValueError("pass scenario/num_humans either directly or through config, not both differently")
         super().__init__(device=torch.device(device), batch_size=torch.Size([int(num_envs)]))

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 SCENARIOS = ("circle", "square")
+ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
 
@@ -37,8 +38,11 @@ class CrowdConfig:
     orca_max_neighbors: int = 10
     orca_time_horizon: float = 5.0
     orca_radius_margin: float = 0.01  # CrowdNav adds 0.01 m to every ORCA radius
+    orca_backend: str = "eager"  # "compiled" for the torch.compile backend (same numbers, faster)
 
     def __post_init__(self) -> None:
+        if self.orca_backend not in ORCA_BACKENDS:
+            raise ValueError(f"orca_backend must be one of {ORCA_BACKENDS}, got {self.orca_backend!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario must be one of {SCENARIOS}, got {self.scenario!r}")
         if isinstance(self.num_humans, bool) or int(self.num_humans) != self.num_humans or self.num_humans < 1:

@@ -45,10 +45,14 @@ def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
 
 def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
     """ORCA velocities of the humans among themselves (the robot is invisible to them)."""
+    if cfg.orca_backend == "compiled":
+        from crowdrl.sim.fast import compiled_orca_solve as solve
+    else:
+        solve = orca_solve
     B, N = state.batch_size, state.num_humans
     radius = torch.full((B, N), cfg.human_radius + cfg.orca_radius_margin, dtype=state.human_position.dtype,
                         device=state.device)
-    sol = orca_solve(
+    sol = solve(
         state.human_position,
         state.human_velocity,
         human_preferred_velocity(state.human_position, state.human_goal),
