@@ -72,27 +72,21 @@ def state_bytes(state: CrowdState) -> int:
 
 
 def select_step(backend: str):
-    """The batched step function of ``backend``; ``None`` when it is unavailable."""
-    if backend == "torch":
-        return crowd.step
-    try:
-        from crowdrl.sim import fast  # noqa: PLC0415 - optional, written elsewhere
-    except ImportError as exc:
-        log(f"backend 'compiled' is unavailable: crowdrl.sim.fast cannot be imported ({exc})")
-        return None
-    # Route crowd.step (and so the env) through the compiled ORCA; patching this process only.
-    if hasattr(fast, "step"):
-        return fast.step
-    if hasattr(fast, "compiled_human_velocities"):
-        crowd.human_velocities = fast.compiled_human_velocities
-        return crowd.step
-    for name in ("compiled_orca_solve", "orca_solve"):
-        if hasattr(fast, name):
-            crowd.orca_solve = getattr(fast, name)
-            return crowd.step
-    log("backend 'compiled' is unavailable: crowdrl.sim.fast has no step, compiled_human_velocities "
-        "or compiled_orca_solve")
-    return None
+    """The batched step function, or ``None`` when ``backend`` cannot run here.
+
+    The backend itself is chosen through ``CrowdConfig.orca_backend`` (see :func:`orca_backend`).
+    """
+    if backend == "compiled":
+        try:
+            from crowdrl.sim import fast  # noqa: F401,PLC0415
+        except ImportError as exc:
+            log(f"backend 'compiled' is unavailable: crowdrl.sim.fast cannot be imported ({exc})")
+            return None
+    return crowd.step
+
+
+def orca_backend(backend: str) -> str:
+    return "compiled" if backend == "compiled" else "eager"
 
 
 # ----------------------------------------------------------------------------- batched core
@@ -318,7 +312,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads[0])
 
     if args._memprobe:
-        print(json.dumps(memory_probe(CrowdConfig(scenario=args.scenario, num_humans=MEM_N), MEM_B, args.seed, step_fn)))
+        print(json.dumps(memory_probe(CrowdConfig(scenario=args.scenario, num_humans=MEM_N, orca_backend=orca_backend(args.backend)), MEM_B, args.seed, step_fn)))
         return 0
 
     rows = []
@@ -326,7 +320,7 @@ def main(argv=None) -> int:
     for threads in args.threads:
         torch.set_num_threads(threads)
         for n in args.num_humans:
-            cfg = CrowdConfig(scenario=args.scenario, num_humans=n)
+            cfg = CrowdConfig(scenario=args.scenario, num_humans=n, orca_backend=orca_backend(args.backend))
             if n not in ref_cache:
                 ref_cache[n] = bench_reference(cfg, args.ref_steps, args.seed)
                 if ref_cache[n]:

@@ -21,6 +21,12 @@ lines ``0..l``, never on the running result, so every line's candidate is comput
 parallel and only the cheap "is the running result violating line l" scan stays sequential.
 The same holds for each projected program inside (4), whose start point does not depend on
 the running result either.
+
+Bit-level fidelity to RVO2 (float32): square roots are correctly rounded (ATen's CPU ``sqrt``
+is not; see :func:`_sqrt`), Vector2 divisions multiply by the reciprocal as RVO2 does, and
+neighbour ties go by agent index. Selections use a branch-free bitwise select on large
+tensors (ATen's CPU ``where`` mispredicts on irregular masks). :mod:`crowdrl.sim.fast` is a
+compiled backend computing the same thing.
 """
 
 from __future__ import annotations
@@ -62,12 +68,26 @@ def _select(cond: Tensor, a: Tensor, b: Tensor | float) -> Tensor:
     ATen's CPU ``where`` is a scalar loop whose branch mispredicts on irregular masks (about
     10x slower than a vectorised op); this selects through the integer bit patterns instead.
     """
+    if cond.numel() < 4096:  # small: the op count matters more than the mispredictions
+        return torch.where(cond, a, b)
     itype = _INT_OF[a.dtype]
     if not isinstance(b, Tensor):
         b = torch.full((), b, dtype=a.dtype, device=a.device)
     bi = b.view(itype)
     m = cond.to(itype).neg_()
     return (a.view(itype) ^ bi).bitwise_and_(m).bitwise_xor_(bi).view(a.dtype)
+
+
+def _sqrt(x: Tensor) -> Tensor:
+    """Correctly rounded square root (IEEE ``sqrt``, what RVO2's ``std::sqrt`` computes).
+
+    ATen's CPU ``sqrt`` goes through MKL's vector math, which is not correctly rounded in
+    float32 (it is off by one ulp now and then); the float64 root rounded to float32 is exact
+    (double rounding is innocuous for square roots).
+    """
+    if x.dtype == torch.float32:
+        return x.double().sqrt_().float()
+    return torch.sqrt(x)
 
 
 def _check_inputs(
@@ -115,247 +135,10 @@ def _check_inputs(
         raise ValueError(f"max_neighbors must be a non-negative integer, got {max_neighbors}")
 
 
-def _select_neighbors(
-    positions: Tensor, mask: Tensor | None, neighbor_dist: float, max_neighbors: int
-) -> tuple[Tensor, Tensor]:
-    """Indices ``[B, N, K]`` of each agent's neighbours, nearest first, and their validity."""
-    B, N, _ = positions.shape
-    K = min(int(max_neighbors), N - 1)
-    rel = positions.unsqueeze(1) - positions.unsqueeze(2)  # [B, i, j, 2] = p_j - p_i
-    dist_sq = rel[..., 0] * rel[..., 0] + rel[..., 1] * rel[..., 1]
-    inf = torch.tensor(float("inf"), dtype=dist_sq.dtype, device=dist_sq.device)
-    excluded = torch.eye(N, dtype=torch.bool, device=positions.device).unsqueeze(0)
-    excluded = excluded | ~(dist_sq < neighbor_dist * neighbor_dist)
-    if mask is not None:
-        excluded = excluded | ~mask.unsqueeze(1) | ~mask.unsqueeze(2)
-    dist_sq = torch.where(excluded, inf, dist_sq)
-    if K <= 0:
-        empty = torch.zeros(B, N, 0, dtype=torch.long, device=positions.device)
-        return empty, empty.bool()
-    sorted_d, order = torch.sort(dist_sq, dim=-1, stable=True)
-    return order[..., :K], torch.isfinite(sorted_d[..., :K])
-
-
-def _orca_lines(
-    positions: Tensor,
-    velocities: Tensor,
-    radius: Tensor,
-    neighbors: Tensor,
-    time_step: float,
-    time_horizon: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """ORCA half-planes ``(dir_x, dir_y, point_x, point_y)``, each ``[B, N, K]``."""
-    B, N, K = neighbors.shape
-    flat = neighbors.reshape(B, N * K)
-    other_p = torch.gather(positions, 1, flat.unsqueeze(-1).expand(B, N * K, 2)).reshape(B, N, K, 2)
-    other_v = torch.gather(velocities, 1, flat.unsqueeze(-1).expand(B, N * K, 2)).reshape(B, N, K, 2)
-    other_r = torch.gather(radius, 1, flat).reshape(B, N, K)
-
-    px = other_p[..., 0] - positions[..., 0:1]
-    py = other_p[..., 1] - positions[..., 1:2]
-    vx = velocities[..., 0:1] - other_v[..., 0]
-    vy = velocities[..., 1:2] - other_v[..., 1]
-    dist_sq = px * px + py * py
-    comb_r = radius.unsqueeze(-1) + other_r
-    comb_r_sq = comb_r * comb_r
-    one = torch.ones((), dtype=positions.dtype, device=positions.device)
-    inv_th = one / time_horizon
-    inv_ts = one / time_step
-
-    # No collision: project on the cut-off circle or on a leg of the velocity obstacle.
-    wx = vx - inv_th * px
-    wy = vy - inv_th * py
-    w_len_sq = wx * wx + wy * wy
-    dot1 = wx * px + wy * py
-    on_cutoff = (dot1 < 0) & (dot1 * dot1 > comb_r_sq * w_len_sq)
-    w_len = torch.sqrt(w_len_sq)
-    inv_w_len = one / w_len  # RVO2 divides a Vector2 by multiplying with the reciprocal
-    ux_hat = wx * inv_w_len
-    uy_hat = wy * inv_w_len
-    cut_dx, cut_dy = uy_hat, -ux_hat
-    cut_s = comb_r * inv_th - w_len
-    cut_ux, cut_uy = cut_s * ux_hat, cut_s * uy_hat
-
-    leg = torch.sqrt(torch.clamp(dist_sq - comb_r_sq, min=0))
-    left = _det(px, py, wx, wy) > 0
-    inv_dist_sq = one / dist_sq
-    left_dx = (px * leg - py * comb_r) * inv_dist_sq
-    left_dy = (px * comb_r + py * leg) * inv_dist_sq
-    right_dx = -(px * leg + py * comb_r) * inv_dist_sq
-    right_dy = -(-px * comb_r + py * leg) * inv_dist_sq
-    leg_dx = torch.where(left, left_dx, right_dx)
-    leg_dy = torch.where(left, left_dy, right_dy)
-    dot2 = vx * leg_dx + vy * leg_dy
-    leg_ux = dot2 * leg_dx - vx
-    leg_uy = dot2 * leg_dy - vy
-
-    free_dx = torch.where(on_cutoff, cut_dx, leg_dx)
-    free_dy = torch.where(on_cutoff, cut_dy, leg_dy)
-    free_ux = torch.where(on_cutoff, cut_ux, leg_ux)
-    free_uy = torch.where(on_cutoff, cut_uy, leg_uy)
-
-    # Collision: project on the cut-off circle of time time_step.
-    cwx = vx - inv_ts * px
-    cwy = vy - inv_ts * py
-    cw_len = torch.sqrt(cwx * cwx + cwy * cwy)
-    inv_cw_len = one / cw_len
-    cux_hat = cwx * inv_cw_len
-    cuy_hat = cwy * inv_cw_len
-    col_s = comb_r * inv_ts - cw_len
-    colliding = ~(dist_sq > comb_r_sq)
-
-    dx = torch.where(colliding, cuy_hat, free_dx)
-    dy = torch.where(colliding, -cux_hat, free_dy)
-    ux = torch.where(colliding, col_s * cux_hat, free_ux)
-    uy = torch.where(colliding, col_s * cuy_hat, free_uy)
-    half = 0.5
-    point_x = velocities[..., 0:1] + half * ux
-    point_y = velocities[..., 1:2] + half * uy
-    return dx, dy, point_x, point_y
-
-
-def _lp1_candidates(
-    dx: Tensor,
-    dy: Tensor,
-    qx: Tensor,
-    qy: Tensor,
-    keep: Tensor,
-    radius: Tensor,
-    opt_x: Tensor,
-    opt_y: Tensor,
-    direction_opt: bool,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """RVO2's ``linearProgram1`` for every line ``l`` at once, against the kept lines ``i < l``.
-
-    Lines are ``[..., L]``; ``radius``, ``opt_*`` broadcast against ``[...]``.
-    Returns candidate ``(x, y)`` and ``feasible``, each ``[..., L]``.
-    """
-    L = dx.shape[-1]
-    r = radius.unsqueeze(-1)
-    dot = qx * dx + qy * dy
-    disc = dot * dot + r * r - (qx * qx + qy * qy)
-    sq = torch.sqrt(torch.clamp(disc, min=0))
-    t_left = -dot - sq
-    t_right = -dot + sq
-    feasible = disc >= 0
-
-    # Pairwise terms [..., l, i]: line i (earlier) against line l.
-    denom = _det(dx.unsqueeze(-1), dy.unsqueeze(-1), dx.unsqueeze(-2), dy.unsqueeze(-2))
-    numer = _det(
-        dx.unsqueeze(-2),
-        dy.unsqueeze(-2),
-        qx.unsqueeze(-1) - qx.unsqueeze(-2),
-        qy.unsqueeze(-1) - qy.unsqueeze(-2),
-    )
-    earlier = torch.ones(L, L, dtype=torch.bool, device=dx.device).tril(-1)
-    active = earlier & keep.unsqueeze(-2)
-    parallel = torch.abs(denom) <= RVO_EPSILON
-    feasible = feasible & ~(active & parallel & (numer < 0)).any(-1)
-    t = numer / torch.where(parallel, torch.ones_like(denom), denom)
-    bounding = active & ~parallel
-    inf = torch.tensor(float("inf"), dtype=dx.dtype, device=dx.device)
-    t_right = torch.minimum(t_right, torch.where(bounding & (denom >= 0), t, inf).amin(-1))
-    t_left = torch.maximum(t_left, torch.where(bounding & (denom < 0), t, -inf).amax(-1))
-    feasible = feasible & ~(t_left > t_right)
-
-    if direction_opt:
-        take_right = (opt_x.unsqueeze(-1) * dx + opt_y.unsqueeze(-1) * dy) > 0
-        t_opt = torch.where(take_right, t_right, t_left)
-    else:
-        t_opt = dx * (opt_x.unsqueeze(-1) - qx) + dy * (opt_y.unsqueeze(-1) - qy)
-        t_opt = torch.where(t_opt < t_left, t_left, torch.where(t_opt > t_right, t_right, t_opt))
-    return qx + t_opt * dx, qy + t_opt * dy, feasible
-
-
-def _lp2_scan(
-    dx: Tensor,
-    dy: Tensor,
-    qx: Tensor,
-    qy: Tensor,
-    keep: Tensor,
-    cand_x: Tensor,
-    cand_y: Tensor,
-    cand_ok: Tensor,
-    start_x: Tensor,
-    start_y: Tensor,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """RVO2's ``linearProgram2`` loop given the per-line candidates.
-
-    Returns the result ``(x, y)``, ``failed`` and the index of the failing line (``L`` if none).
-    On failure the result is the one before the failing line, as in RVO2.
-    """
-    L = dx.shape[-1]
-    rx, ry = start_x, start_y
-    failed = torch.zeros_like(keep[..., 0]) if L else torch.zeros_like(start_x, dtype=torch.bool)
-    fail_line = torch.full_like(failed, L, dtype=torch.long)
-    for l in range(L):
-        violated = keep[..., l] & ~failed & (_det(dx[..., l], dy[..., l], qx[..., l] - rx, qy[..., l] - ry) > 0)
-        ok = cand_ok[..., l]
-        move = violated & ok
-        rx = torch.where(move, cand_x[..., l], rx)
-        ry = torch.where(move, cand_y[..., l], ry)
-        new_fail = violated & ~ok
-        fail_line = torch.where(new_fail, l, fail_line)
-        failed = failed | new_fail
-    return rx, ry, failed, fail_line
-
-
-def _lp3(
-    dx: Tensor,
-    dy: Tensor,
-    qx: Tensor,
-    qy: Tensor,
-    keep: Tensor,
-    begin: Tensor,
-    radius: Tensor,
-    rx: Tensor,
-    ry: Tensor,
-) -> tuple[Tensor, Tensor]:
-    """RVO2's ``linearProgram3`` (no obstacle lines), lines ``[M, L]``, for agents ``[M]``."""
-    L = dx.shape[-1]
-    # Projected lines for every (i, j<i): [M, i, j].
-    dxi, dyi, qxi, qyi = (t.unsqueeze(-1) for t in (dx, dy, qx, qy))
-    dxj, dyj, qxj, qyj = (t.unsqueeze(-2) for t in (dx, dy, qx, qy))
-    determinant = _det(dxi, dyi, dxj, dyj)
-    parallel = torch.abs(determinant) <= RVO_EPSILON
-    same_dir = (dxi * dxj + dyi * dyj) > 0
-    safe_det = torch.where(parallel, torch.ones_like(determinant), determinant)
-    s = _det(dxj, dyj, qxi - qxj, qyi - qyj) / safe_det
-    px_ = torch.where(parallel, 0.5 * (qxi + qxj), qxi + s * dxi)
-    py_ = torch.where(parallel, 0.5 * (qyi + qyj), qyi + s * dyi)
-    ddx = dxj - dxi
-    ddy = dyj - dyi
-    dlen = torch.sqrt(ddx * ddx + ddy * ddy)
-    inv_dlen = 1.0 / dlen
-    pdx = ddx * inv_dlen
-    pdy = ddy * inv_dlen
-    earlier = torch.ones(L, L, dtype=torch.bool, device=dx.device).tril(-1)
-    pkeep = earlier & keep.unsqueeze(-1) & keep.unsqueeze(-2) & ~(parallel & same_dir)
-
-    # Direction-optimising LP2 for each i, all at once: optimise towards (-dir_i.y, dir_i.x).
-    opt_x, opt_y = -dy, dx  # [M, i]
-    r = radius.unsqueeze(-1).expand_as(dx)
-    cx, cy, cok = _lp1_candidates(pdx, pdy, px_, py_, pkeep, r, opt_x, opt_y, direction_opt=True)
-    start_x, start_y = opt_x * r, opt_y * r
-    sol_x, sol_y, sol_fail, _ = _lp2_scan(pdx, pdy, px_, py_, pkeep, cx, cy, cok, start_x, start_y)
-
-    distance = torch.zeros_like(rx)
-    for i in range(L):
-        violation = _det(dx[..., i], dy[..., i], qx[..., i] - rx, qy[..., i] - ry)
-        active = keep[..., i] & (begin <= i) & (violation > distance)
-        take = active & ~sol_fail[..., i]
-        rx = torch.where(take, sol_x[..., i], rx)
-        ry = torch.where(take, sol_y[..., i], ry)
-        new_distance = _det(dx[..., i], dy[..., i], qx[..., i] - rx, qy[..., i] - ry)
-        distance = torch.where(active, new_distance, distance)
-    return rx, ry
-
-
 # ---------------------------------------------------------------------------------------------
-# Lines-first implementation used by orca_solve: every per-line quantity is a contiguous
-# ``[K, A]`` tensor (line slot outer, the ``A = B*N`` agents of all scenes inner), so each
-# elementwise op runs over contiguous memory with its broadcast operands as whole rows.
-# The per-element arithmetic is the same as above (and as RVO2's), only the layout differs.
+# Layout: every per-line quantity is a contiguous ``[K, A]`` tensor (line slot outer, the
+# ``A = B*N`` agents of all scenes inner), so each elementwise op runs over contiguous memory
+# with its broadcast operands as whole rows, and a loop over lines slices whole rows.
 # ---------------------------------------------------------------------------------------------
 
 
@@ -383,7 +166,7 @@ def _neighbor_table(
     return flat, valid
 
 
-def _line_math(px, py, vx, vy, comb_r, own_vx, own_vy, inv_th, inv_ts):
+def _line_math(px, py, vx, vy, comb_r, own_vx, own_vy, inv_th, inv_ts, where=_select, sqrt=_sqrt):
     """ORCA half-plane ``(dir_x, dir_y, point_x, point_y)`` from the neighbour's relative
     position ``p``, relative velocity ``v = v_self - v_other`` and combined radius, elementwise
     (RVO2's ``computeNewVelocity`` without obstacles)."""
@@ -395,34 +178,34 @@ def _line_math(px, py, vx, vy, comb_r, own_vx, own_vy, inv_th, inv_ts):
     w_len_sq = wx * wx + wy * wy
     dot1 = wx * px + wy * py
     on_cutoff = (dot1 < 0) & (dot1 * dot1 > comb_r_sq * w_len_sq)
-    w_len = torch.sqrt(w_len_sq)
+    w_len = sqrt(w_len_sq)
     inv_w_len = 1.0 / w_len  # RVO2 divides a Vector2 by multiplying with the reciprocal
     ux_hat = wx * inv_w_len
     uy_hat = wy * inv_w_len
     cut_s = comb_r * inv_th - w_len
-    leg = torch.sqrt(torch.clamp(dist_sq - comb_r_sq, min=0))
+    leg = sqrt(torch.clamp(dist_sq - comb_r_sq, min=0))
     left = _det(px, py, wx, wy) > 0
     inv_dist_sq = 1.0 / dist_sq
-    leg_dx = _select(left, (px * leg - py * comb_r) * inv_dist_sq, -(px * leg + py * comb_r) * inv_dist_sq)
-    leg_dy = _select(left, (px * comb_r + py * leg) * inv_dist_sq, -(-px * comb_r + py * leg) * inv_dist_sq)
+    leg_dx = where(left, (px * leg - py * comb_r) * inv_dist_sq, -(px * leg + py * comb_r) * inv_dist_sq)
+    leg_dy = where(left, (px * comb_r + py * leg) * inv_dist_sq, -(-px * comb_r + py * leg) * inv_dist_sq)
     dot2 = vx * leg_dx + vy * leg_dy
-    free_dx = _select(on_cutoff, uy_hat, leg_dx)
-    free_dy = _select(on_cutoff, -ux_hat, leg_dy)
-    free_ux = _select(on_cutoff, cut_s * ux_hat, dot2 * leg_dx - vx)
-    free_uy = _select(on_cutoff, cut_s * uy_hat, dot2 * leg_dy - vy)
+    free_dx = where(on_cutoff, uy_hat, leg_dx)
+    free_dy = where(on_cutoff, -ux_hat, leg_dy)
+    free_ux = where(on_cutoff, cut_s * ux_hat, dot2 * leg_dx - vx)
+    free_uy = where(on_cutoff, cut_s * uy_hat, dot2 * leg_dy - vy)
     # Collision: project on the cut-off circle of time time_step.
     cwx = vx - inv_ts * px
     cwy = vy - inv_ts * py
-    cw_len = torch.sqrt(cwx * cwx + cwy * cwy)
+    cw_len = sqrt(cwx * cwx + cwy * cwy)
     inv_cw_len = 1.0 / cw_len
     cux_hat = cwx * inv_cw_len
     cuy_hat = cwy * inv_cw_len
     col_s = comb_r * inv_ts - cw_len
     colliding = ~(dist_sq > comb_r_sq)
-    dx = _select(colliding, cuy_hat, free_dx)
-    dy = _select(colliding, -cux_hat, free_dy)
-    ux = _select(colliding, col_s * cux_hat, free_ux)
-    uy = _select(colliding, col_s * cuy_hat, free_uy)
+    dx = where(colliding, cuy_hat, free_dx)
+    dy = where(colliding, -cux_hat, free_dy)
+    ux = where(colliding, col_s * cux_hat, free_ux)
+    uy = where(colliding, col_s * cuy_hat, free_uy)
     return dx, dy, own_vx + 0.5 * ux, own_vy + 0.5 * uy
 
 
@@ -444,11 +227,14 @@ def _lp1_candidates_t(
     dx: Tensor, dy: Tensor, qx: Tensor, qy: Tensor, keep: Tensor, radius: Tensor,
     opt_x: Tensor, opt_y: Tensor, direction_opt: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`_lp1_candidates` with the lines on the first dimension (``[L, ...]``)."""
+    """RVO2's ``linearProgram1`` for every line ``l`` at once, against the kept lines ``i < l``.
+
+    Lines are ``[L, ...]`` (first dimension); ``radius``, ``opt_*`` broadcast against ``[...]``.
+    Returns candidate ``(x, y)`` and ``feasible``, each ``[L, ...]``."""
     L = dx.shape[0]
     dot = qx * dx + qy * dy
     disc = dot * dot + radius * radius - (qx * qx + qy * qy)
-    sq = torch.sqrt(torch.clamp(disc, min=0))
+    sq = _sqrt(torch.clamp(disc, min=0))
     t_left = -dot - sq
     t_right = dot.neg_().add_(sq)
     feasible = disc >= 0
@@ -478,7 +264,10 @@ def _lp2_scan_t(
     dx: Tensor, dy: Tensor, qx: Tensor, qy: Tensor, keep: Tensor,
     cand_x: Tensor, cand_y: Tensor, cand_ok: Tensor, start_x: Tensor, start_y: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`_lp2_scan` with the lines on the first dimension (``[L, ...]``)."""
+    """RVO2's ``linearProgram2`` loop given the per-line candidates (lines ``[L, ...]``).
+
+    Returns the result ``(x, y)``, ``failed`` and the index of the failing line (``L`` if none).
+    On failure the result is the one before the failing line, as in RVO2."""
     L = dx.shape[0]
     rx, ry = start_x.clone(), start_y.clone()
     failed = torch.zeros_like(rx, dtype=torch.bool)
@@ -500,7 +289,7 @@ def _lp3_t(
     dx: Tensor, dy: Tensor, qx: Tensor, qy: Tensor, keep: Tensor, begin: Tensor,
     radius: Tensor, rx: Tensor, ry: Tensor,
 ) -> tuple[Tensor, Tensor]:
-    """:func:`_lp3` with the lines on the first dimension: lines ``[L, M]`` for agents ``[M]``."""
+    """RVO2's ``linearProgram3`` (no obstacle lines): lines ``[L, M]`` for agents ``[M]``."""
     L = dx.shape[0]
     # Projected lines for every (j, i) with j < i: [j, i, M].
     dxi, dyi, qxi, qyi = (t.unsqueeze(0) for t in (dx, dy, qx, qy))
@@ -514,7 +303,7 @@ def _lp3_t(
     py_ = torch.where(parallel, 0.5 * (qyi + qyj), qyi + s * dyi)
     ddx = dxj - dxi
     ddy = dyj - dyi
-    dlen = torch.sqrt(ddx * ddx + ddy * ddy)
+    dlen = _sqrt(ddx * ddx + ddy * ddy)
     inv_dlen = 1.0 / dlen
     pdx = ddx * inv_dlen
     pdy = ddy * inv_dlen
@@ -568,7 +357,7 @@ def orca_solve(
     ms = max_speed.reshape(A)
     o_sq = ox * ox + oy * oy
     outside = o_sq > ms * ms
-    inv_o_len = 1.0 / torch.sqrt(o_sq)
+    inv_o_len = 1.0 / _sqrt(o_sq)
     start_x = _select(outside, ox * inv_o_len * ms, ox)
     start_y = _select(outside, oy * inv_o_len * ms, oy)
     if K == 0:
