@@ -30,6 +30,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--num-humans", type=int, default=10)
     p.add_argument("--batch-size", type=int, default=1000)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--collision-velocity", choices=("new", "start"), default="new",
+                   help="humans' velocities in the collision check: this step's (default) or, as "
+                        "upstream, those from the start of the step")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = p.parse_args(argv)
     if args.episodes < 1 or args.batch_size < 1 or args.threads < 1:
@@ -42,7 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     results = {}
     for scenario in args.scenarios:
-        cfg = CrowdConfig(scenario=scenario, num_humans=args.num_humans)
+        cfg = CrowdConfig(scenario=scenario, num_humans=args.num_humans, collision_velocity=args.collision_velocity)
         start = time.perf_counter()
         metrics, _ = evaluate_policy(cfg, OrcaRobotPolicy(), split="test", seed=args.seed,
                                      num_episodes=args.episodes, batch_size=args.batch_size)

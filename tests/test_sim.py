@@ -257,3 +257,16 @@ def test_step_rejects_wrong_velocity_shape():
     s = make_state((0.0, -4.0), (0.0, 4.0), [(8.0, 8.0)])
     with pytest.raises(ValueError, match="robot_velocity"):
         step(cfg, s, torch.zeros(2, 2))
+
+
+def test_upstream_collision_check_uses_start_velocities():
+    """collision_velocity="start" checks the motion with the humans' old velocities (CrowdNav)."""
+    # a human walking away fast at the start is turned back by ORCA towards a goal behind the robot
+    s = make_state((0.0, 0.0), (0.0, 4.0), [(0.0, 0.7)], human_vel=[(0.0, 1.0)], human_goal=[(0.0, -3.0)])
+    v = torch.zeros(1, 2)
+    _, new = step(CrowdConfig(num_humans=1), s, v, torch.tensor([math.pi / 2]))
+    _, old = step(CrowdConfig(num_humans=1, collision_velocity="start"), s, v, torch.tensor([math.pi / 2]))
+    assert old.min_separation.item() == pytest.approx(0.1, abs=1e-6)  # moving away: start gap
+    assert new.min_separation.item() < old.min_separation.item()
+    with pytest.raises(ValueError, match="collision_velocity"):
+        CrowdConfig(collision_velocity="later")

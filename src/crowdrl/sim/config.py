@@ -39,10 +39,15 @@ class CrowdConfig:
     orca_time_horizon: float = 5.0
     orca_radius_margin: float = 0.01  # CrowdNav adds 0.01 m to every ORCA radius
     orca_backend: str = "eager"  # "compiled" for the torch.compile backend (same numbers, faster)
+    # Collision check over the step with the humans' velocities of this step ("new", the motion
+    # that happens) or, as upstream CrowdNav did, those from the start of the step ("start").
+    collision_velocity: str = "new"
 
     def __post_init__(self) -> None:
         if self.orca_backend not in ORCA_BACKENDS:
             raise ValueError(f"orca_backend must be one of {ORCA_BACKENDS}, got {self.orca_backend!r}")
+        if self.collision_velocity not in ("new", "start"):
+            raise ValueError(f"collision_velocity must be 'new' or 'start', got {self.collision_velocity!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario must be one of {SCENARIOS}, got {self.scenario!r}")
         if isinstance(self.num_humans, bool) or int(self.num_humans) != self.num_humans or self.num_humans < 1:

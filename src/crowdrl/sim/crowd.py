@@ -106,7 +106,8 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
 
     # 2. continuous collision check over the linear relative motion within the step
     rel_p = state.human_position - state.robot_position.unsqueeze(1)
-    rel_v = human_vel - robot_velocity.unsqueeze(1)
+    check_vel = human_vel if cfg.collision_velocity == "new" else state.human_velocity
+    rel_v = check_vel - robot_velocity.unsqueeze(1)
     surface = closest_surface_distance(rel_p, rel_v, dt, cfg.human_radius + cfg.robot_radius)  # [B, N]
     min_sep = surface.min(-1).values
     collided = min_sep < 0
