@@ -185,7 +185,7 @@ class Trainer:
                 if bar is not None:
                     bar.update(frames)
                     bar.set_postfix(eps=f"{float(self.egreedy.eps):.3f}", episodes=c.episodes,
-                                    best_val=f"{c.best_val:.3f}")
+                                    best_val_score=f"{c.best_val:.3f}")
                 if c.frames - c.last_checkpoint >= t.checkpoint_every_frames or c.frames >= t.total_frames:
                     c.last_checkpoint = c.frames
                     self.save("last.pt")
@@ -196,7 +196,7 @@ class Trainer:
             collector.shutdown()
             if bar is not None:
                 bar.close()
-        summary = {"frames": c.frames, "updates": c.updates, "episodes": c.episodes, "best_val_success": c.best_val,
+        summary = {"frames": c.frames, "updates": c.updates, "episodes": c.episodes, "best_val_score": c.best_val,  # success + 1e-3 * return
                    "best_frames": c.best_frames, "timers_s": timers}
         self._write_status("trained", **summary)
         return summary
