@@ -1,0 +1,76 @@
+"""ORCA agreement with RVO2, per branch: the 260 reference cases and fresh pyrvo scenes.
+
+    python experiments/orca_agreement.py          # needs pyrvo (installed by `make install`)
+
+Uses the same scenes and exclusions as ``tests/test_orca.py`` (which asserts |dv| <= 1e-4) and
+prints the measured worst |dv|, how many agents were bit-exact, and the largest float32 speed.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from crowdrl.sim.orca import orca_solve  # noqa: E402
+from tests.orca_scenes import KINDS, random_scene, rvo2_velocities  # noqa: E402
+from tests.test_orca import TOL, _padded_batch  # noqa: E402
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    cases = json.load(gzip.open(ROOT / "tests" / "data" / "orca_cases.json.gz", "rt"))["cases"]
+    worst = {"feasible": [0.0, 0, 0], "fallback": [0.0, 0, 0]}
+    for c in cases:
+        i, o = c["input"], c["output"]
+        t = lambda k: torch.tensor(i[k]).unsqueeze(0)  # noqa: E731
+        sol = orca_solve(t("positions"), t("velocities"), t("pref_velocities"), t("radius"), t("max_speed"),
+                         time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
+                         max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"])
+        err = np.linalg.norm(sol.velocities[0].double().numpy() - np.array(o["new_velocities"]), axis=-1)
+        sens, inf = np.array(o["precision_sensitive"]), np.array(o["lp_infeasible"])
+        for branch, m in (("feasible", ~inf & ~sens), ("fallback", inf & ~sens)):
+            if m.any():
+                w = worst[branch]
+                w[0], w[1], w[2] = max(w[0], err[m].max()), w[1] + int(m.sum()), w[2] + int((err[m] == 0).sum())
+    for b, (e, n, exact) in worst.items():
+        print(f"reference cases, {b:<8}: worst |dv| {e:.2e} m/s over {n} agents ({exact} bit-exact)")
+
+    fresh = {"feasible": [0.0, 0], "fallback": [0.0, 0]}
+    n_sens = n_all = 0
+    max_speed = 0.0
+    for kind in KINDS:
+        gen = np.random.default_rng(1234 + KINDS.index(kind))
+        scenes = [random_scene(gen, kind) for _ in range(300)]
+        refs = [rvo2_velocities(s) for s in scenes]
+        b32, mask = _padded_batch(scenes)
+        b64, _ = _padded_batch(scenes, torch.float64)
+        params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0, mask=mask)
+        v32, v64 = orca_solve(**b32, **params), orca_solve(**b64, **params).velocities
+        for b, (s, ref) in enumerate(zip(scenes, refs)):
+            n = len(s["positions"])
+            v = v32.velocities[b, :n].double().numpy()
+            err = np.linalg.norm(v - ref, axis=-1)
+            sens = np.linalg.norm(v64[b, :n].numpy() - ref, axis=-1) > TOL
+            inf = v32.lp_infeasible[b, :n].numpy()
+            n_sens, n_all = n_sens + int(sens.sum()), n_all + n
+            max_speed = max(max_speed, float(np.linalg.norm(v, axis=-1).max()))
+            for branch, m in (("feasible", ~inf & ~sens), ("fallback", inf & ~sens)):
+                if m.any():
+                    fresh[branch][0] = max(fresh[branch][0], err[m].max())
+                    fresh[branch][1] += int(m.sum())
+    for b, (e, n) in fresh.items():
+        print(f"fresh scenes (4 kinds x 300), {b:<8}: worst |dv| {e:.2e} m/s over {n} agents")
+    print(f"ill-conditioned agents excluded (float64 moves them > {TOL}): {n_sens}/{n_all}")
+    print(f"largest float32 speed returned (max speed 1 m/s): {max_speed:.4f} m/s")
+
+
+if __name__ == "__main__":
+    main()
