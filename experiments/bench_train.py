@@ -67,7 +67,9 @@ def main(argv: list[str] | None = None) -> dict:
         loss.backward()
         t3 = time.perf_counter()
         tr.optimizer.step()
-        tr.target_updater.step()
+        tr.counters.updates += 1
+        if tr.counters.updates % tr.updates_per_copy == 0:
+            tr.loss.update_target()
         t4 = time.perf_counter()
         if i >= 20:
             for k, v in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):

@@ -1,57 +1,99 @@
-"""The main job on a small default: batched ORCA-baseline rollouts on both scenarios.
+"""The main job on a small default: train SG-D3QN, test it against ORCA, render it.
 
-Prints the metrics on the test cases, and writes a trajectory PNG and an animated GIF of one
-test episode per scenario into a run folder (path printed at the end).
+Trains the default configuration (SG-D3QN, ε-greedy, circle) for the ``demo`` preset's budget,
+evaluates the best validation checkpoint greedily on the scenario's fixed test cases (1000 by
+default, test seed 0), runs the ORCA robot baseline on the same cases, prints both side by side,
+and writes the learning curves, a PNG and a GIF of test case 0 into the run folder (printed).
 
-    python experiments/demo.py                  # 1000 test cases per scenario
-    python experiments/demo.py --episodes 100 --out runs/demo
+    python experiments/demo.py                                  # preset=demo, seed 0
+    python experiments/demo.py seed=1 --out runs/demo-s1        # any Hydra override of conf/
+    python experiments/demo.py preset=smoke                     # a 30-second wiring check
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import sys
 import time
 from pathlib import Path
 
-import torch
+os.environ.setdefault("WANDB_MODE", "offline")
 
-from crowdrl.evaluation import evaluate_policy
-from crowdrl.policies import OrcaRobotPolicy
-from crowdrl.sim.config import SCENARIOS, CrowdConfig
-from crowdrl.viz import animate_trajectory, plot_trajectory
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from evaluate_baseline import format_table  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
+CONF_DIR = ROOT / "conf"
 
 
-def main(argv: list[str] | None = None) -> Path:
+def compose_run(overrides: list[str]):
+    """The validated :class:`RunConfig` for ``conf/config.yaml`` plus Hydra ``overrides``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+
+    from crowdrl.training.config import RunConfig, validate
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    return cfg, validate(cfg)
+
+
+def format_comparison(agent: dict, orca: dict, label: str) -> str:
+    rows = [(label, agent), ("ORCA (same cases)", orca)]
+    lines = [f"{'policy':<28} {'success':>8} {'collision':>9} {'timeout':>8} {'nav time':>9} {'return':>8}"]
+    for name, m in rows:
+        lines.append(f"{name:<28} {m['success_rate']:8.3f} {m['collision_rate']:9.3f} {m['timeout_rate']:8.3f} "
+                     f"{m['navigation_time']:8.2f}s {m['average_return']:8.4f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--episodes", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--record", type=int, default=0, help="test case to render (default 0)")
     p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>)")
+    p.add_argument("overrides", nargs="*", help="Hydra overrides of conf/config.yaml, e.g. seed=1")
     args = p.parse_args(argv)
-    if args.episodes < 1 or not 0 <= args.record < args.episodes:
-        p.error("--episodes must be >= 1 and --record must lie in 0..episodes-1")
-    torch.set_num_threads(1)
-    out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+    from omegaconf import OmegaConf
+
+    from crowdrl.training import ConfigError
+
+    try:
+        cfg, run = compose_run(args.overrides)
+    except ConfigError as exc:
+        p.error(f"invalid configuration: {exc}")
+    import torch
+
+    from crowdrl.evaluation import evaluate_policy
+    from crowdrl.policies import OrcaRobotPolicy
+    from crowdrl.sim.config import CrowdConfig
+    from crowdrl.training import run_training
+
+    out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
     out.mkdir(parents=True, exist_ok=True)
-    results = {}
-    for scenario in SCENARIOS:
-        cfg = CrowdConfig(scenario=scenario)
-        start = time.perf_counter()
-        metrics, traj = evaluate_policy(cfg, OrcaRobotPolicy(), split="test", seed=args.seed,
-                                        num_episodes=args.episodes, record_episode=args.record)
-        results[scenario] = metrics.as_dict()
-        print(f"[{scenario}] {metrics.summary()}  ({time.perf_counter() - start:.1f} s)", flush=True)
-        plot_trajectory(traj, out / f"orca_{scenario}_case{args.record}.png",
-                        title=f"ORCA baseline, {scenario} test case {args.record}")
-        animate_trajectory(traj, out / f"orca_{scenario}_case{args.record}.gif")
+    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    print(f"training {run.encoder.name} + {run.exploration.name} on {run.env.scenario}, preset {run.preset}, "
+          f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)
+    start = time.perf_counter()
+    summary = run_training(run, out)
+    train_s = time.perf_counter() - start
+    agent = summary["test"]["metrics"]
+
+    torch.set_num_threads(run.threads)
+    crowd = CrowdConfig(scenario=run.env.scenario, num_humans=run.env.num_humans)
+    orca, _ = evaluate_policy(crowd, OrcaRobotPolicy(), split="test", seed=summary["test"]["test_seed"],
+                              num_episodes=run.train.test_episodes, batch_size=min(run.train.test_episodes, 1000))
+    orca = orca.as_dict()
+    result = {"agent": agent, "orca": orca, "beats_orca": agent["success_rate"] > orca["success_rate"],
+              "frames": summary["frames"], "updates": summary["updates"], "best_frames": summary["best_frames"],
+              "wall_s": train_s, "test_cases": run.train.test_episodes, "test_seed": summary["test"]["test_seed"]}
+    (out / "demo.json").write_text(json.dumps(result, indent=1))
     print()
-    print(format_table(results, args.episodes, args.seed))
-    print(f"\nwrote trajectory PNGs and GIFs to {out.resolve()}")
-    return out
+    print(f"{run.train.test_episodes} {run.env.scenario} test cases (test seed {result['test_seed']}); "
+          f"{summary['frames']} frames, {summary['updates']} updates, {train_s / 60:.1f} min incl. validation and test")
+    print(format_comparison(agent, orca, f"{run.encoder.name} + {run.exploration.name} (best@{summary['best_frames']})"))
+    verdict = "beats" if result["beats_orca"] else "does NOT beat"
+    print(f"\nthe trained policy {verdict} ORCA on success rate")
+    print(f"run folder (learning_curves.png, test_case0.png/.gif, eval.json, demo.json): {out.resolve()}")
+    return result
 
 
 if __name__ == "__main__":

@@ -67,13 +67,18 @@ def test_evaluate_policy_rejects_bad_arguments():
         evaluate_policy(cfg, OrcaRobotPolicy(), num_episodes=5, record_episode=9)
 
 
-def test_demo_script_writes_png_and_gif(tmp_path):
+def test_demo_script_trains_tests_and_compares_with_orca(tmp_path, capsys):
+    """`make demo`'s script end to end on the smoke budget: run folder, files, the ORCA comparison."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
     import demo
 
-    out = demo.main(["--episodes", "4", "--out", str(tmp_path / "run")])
-    files = sorted(p.name for p in out.iterdir())
-    assert files == ["orca_circle_case0.gif", "orca_circle_case0.png", "orca_square_case0.gif", "orca_square_case0.png"]
+    result = demo.main(["--out", str(tmp_path / "run"), "preset=smoke", "logger=csv", "train.test_episodes=6"])
+    files = {p.name for p in (tmp_path / "run").iterdir()}
+    assert {"learning_curves.png", "test_case0.png", "test_case0.gif", "eval.json", "demo.json", "config.yaml"} <= files
+    assert result["test_cases"] == 6 and result["agent"]["episodes"] == 6 and result["orca"]["episodes"] == 6
+    assert result["beats_orca"] == (result["agent"]["success_rate"] > result["orca"]["success_rate"])
+    out = capsys.readouterr().out
+    assert "ORCA (same cases)" in out and "ORCA on success rate" in out

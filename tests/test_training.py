@@ -19,6 +19,7 @@ from torchrl.objectives import DQNLoss
 from crowdrl.models import make_q_actor
 from crowdrl.training import CheckpointError, ConfigError, NStepReturn, load_checkpoint, nstep_transitions, validate
 from crowdrl.training.checkpoint import save_checkpoint
+from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.config import RunConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,17 +50,13 @@ def test_nstep_never_bootstraps_through_a_termination():
     assert out["next", "obs"].view(-1).tolist() == [2.5, 2.5, 2.5, 4.5, 4.5, 5.5]
 
 
-def test_nstep_target_in_dqn_loss_matches_hand_computation():
-    """The full D3QN target of an n-step transition: r_n + γ^m (1 - terminated) Q_target(s', argmax Q(s'))."""
+def _nstep_rollout(g: float):
     from crowdrl.envs import CrowdNavEnv, RobotCentric
     from torchrl.envs import TransformedEnv
 
     torch.manual_seed(0)
     env = TransformedEnv(CrowdNavEnv("circle", num_envs=1, num_humans=3), RobotCentric())
     actor = make_q_actor("sgd3qn", env.base_env.action_spec)
-    loss = DQNLoss(actor, delay_value=True, double_dqn=True, loss_function="l2", action_space=env.base_env.action_spec)
-    g = 0.9
-    loss.make_value_estimator(gamma=g)
     roll = env.rollout(4, break_when_any_done=False)  # [1, 4]
     roll["next", "reward"] = torch.tensor([[[1.0], [2.0], [3.0], [4.0]]])
     roll["next", "terminated"] = torch.tensor([[[False], [True], [False], [False]]])
@@ -67,13 +64,20 @@ def test_nstep_target_in_dqn_loss_matches_hand_computation():
     keys = ["robot_rc", "humans_rc"]
     trans = nstep_transitions(roll.select(*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]),
                               3, g, keys).reshape(-1)
+    return env, actor, trans
+
+
+def test_nstep_target_in_d3qn_loss_matches_hand_computation():
+    """The full D3QN target of an n-step transition: r_n + γ^m (1 - terminated) Q_target(s', argmax Q(s'))."""
+    g = 0.9
+    _, actor, trans = _nstep_rollout(g)
     net = actor.module[0].module
+    loss = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=g)
     with torch.no_grad():
-        for p in loss.target_value_network_params.values(True, True):
+        for p in loss.target_net.parameters():
             p.add_(0.01 * torch.randn_like(p))  # a target network that differs from the online one
         q_next_online = net(trans["next", "robot_rc"], trans["next", "humans_rc"])
-        with loss.target_value_network_params.to_module(actor):
-            q_next_target = net(trans["next", "robot_rc"], trans["next", "humans_rc"])
+        q_next_target = loss.target_net(trans["next", "robot_rc"], trans["next", "humans_rc"])
         q_now = net(trans["robot_rc"], trans["humans_rc"]).gather(-1, trans["action"].view(-1, 1)).squeeze(-1)
     boot = q_next_target.gather(-1, q_next_online.argmax(-1, keepdim=True)).squeeze(-1)
     # t=0: 1 + .9*2, collision at t=1 -> no bootstrap; t=2: 3 + .9*4, then bootstrap with .9^2
@@ -81,6 +85,43 @@ def test_nstep_target_in_dqn_loss_matches_hand_computation():
     expected = ((q_now - expected_target) ** 2).mean()
     got = loss(trans)["loss"]
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    loss.update_target()
+    for a, b in zip(loss.target_net.parameters(), net.parameters()):
+        assert torch.equal(a, b)
+
+
+def test_d3qn_loss_equals_torchrl_double_dqn_loss():
+    """Our loss is torchrl's DQNLoss(double, delayed, l2) with n-step discounts: same value and gradients."""
+    g = 0.9
+    env, actor, trans = _nstep_rollout(g)
+    net = actor.module[0].module
+    ref = DQNLoss(actor, delay_value=True, double_dqn=True, loss_function="l2", action_space=env.base_env.action_spec)
+    ref.make_value_estimator(gamma=g)
+    ours = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=g)
+    with torch.no_grad():  # the same perturbed target network in both
+        for p_ref, p_ours in zip(ref.target_value_network_params.values(True, True), ours.target_net.parameters()):
+            p_ref.add_(0.01 * torch.randn_like(p_ref))
+            p_ours.copy_(p_ref)
+    grads = []
+    for loss in (ref, ours):
+        net.zero_grad()
+        value = loss(trans.clone())["loss"]
+        value.backward()
+        grads.append((value.detach(), [p.grad.clone() for p in net.parameters()]))
+    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-6, atol=1e-7)
+    for a, b in zip(grads[0][1], grads[1][1]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_d3qn_loss_rejects_out_of_range_actions():
+    g = 0.9
+    _, actor, trans = _nstep_rollout(g)
+    loss = D3QNLoss(actor.module[0].module, ["robot_rc", "humans_rc"], gamma=g)
+    trans["action"][0] = 81
+    with pytest.raises(ValueError, match="actions must lie in 0..80"):
+        loss(trans)
+    with pytest.raises(KeyError, match="humans_rc"):
+        loss(trans.exclude("humans_rc"))
 
 
 def test_nstep_transform_flattens_into_the_buffer():

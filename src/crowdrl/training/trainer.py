@@ -25,7 +25,6 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
 from torchrl.modules import EGreedyModule
-from torchrl.objectives import DQNLoss, HardUpdate
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric, robot_centric
 from crowdrl.evaluation import DiscreteActionPolicy, EpisodeMetrics, evaluate_policy
@@ -34,6 +33,7 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT, observe
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, to_dict
+from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 
@@ -91,14 +91,11 @@ class Trainer:
         self.egreedy = EGreedyModule(base.action_spec, eps_init=run.exploration.eps_start,
                                      eps_end=run.exploration.eps_end, annealing_num_steps=run.exploration.anneal_frames)
         self.policy = TensorDictSequential(self.actor, self.egreedy)
-        self.loss = DQNLoss(self.actor, delay_value=True, double_dqn=True, loss_function="l2",
-                            action_space=base.action_spec)
-        self.loss.make_value_estimator(gamma=t.gamma)
-        updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
-        # HardUpdate copies every (interval + 1) steps
-        self.target_updater = HardUpdate(self.loss, value_network_update_interval=updates_per_copy - 1)
+        self.loss = D3QNLoss(self.net, OBS_KEYS, gamma=t.gamma, double=True)
+        # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
+        self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
         # fused Adam: one kernel for all parameters (~4x cheaper than the per-tensor loop on CPU)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=t.lr, fused=True)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=t.lr, fused=True)
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(t.buffer_size, device=run.device),
             batch_size=t.batch_size,
@@ -113,7 +110,6 @@ class Trainer:
         payload = {
             "loss": self.loss.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "target_counter": self.target_updater.counter,
             "counters": self.counters.__dict__.copy(),
             "torch_rng": torch.get_rng_state(),
             "config": self.config_dict,
@@ -126,7 +122,6 @@ class Trainer:
     def load_state_dict(self, data: dict[str, Any]) -> None:
         self.loss.load_state_dict(data["loss"])
         self.optimizer.load_state_dict(data["optimizer"])
-        self.target_updater.counter = data["target_counter"]
         self.counters = Counters(**data["counters"])
         torch.set_rng_state(data["torch_rng"])
         if "buffer" in data:
@@ -210,15 +205,19 @@ class Trainer:
             return math.nan
         total = 0.0
         for _ in range(n):
-            sample = self.buffer.sample()
-            loss = self.loss(sample)["loss"]
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            self.optimizer.step()
-            self.target_updater.step()
-            total += float(loss.detach())
-        c.updates += n
+            total += self.update_once(self.buffer.sample())
         return total / max(n, 1)
+
+    def update_once(self, sample: TensorDictBase) -> float:
+        """One gradient step on a sampled batch (and the target copy when it is due); returns the loss."""
+        loss = self.loss(sample)["loss"]
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.counters.updates += 1
+        if self.counters.updates % self.updates_per_copy == 0:
+            self.loss.update_target()
+        return float(loss.detach())
 
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
