@@ -1,12 +1,15 @@
 """Training throughput on this machine: collection frames/s and D3QN updates/s, with a breakdown.
 
-    python experiments/bench_train.py                   # SG-D3QN, batch 100, 16 envs, 1 thread
+    python experiments/bench_train.py                            # SG-D3QN, ε-greedy, batch 100, 16 envs
     python experiments/bench_train.py --threads 2 --json
+    python experiments/bench_train.py --explorations egreedy noisy dropout icm re3   # overhead ratios
 
-Measures, in one process: collecting frames with the ε-greedy policy through the TorchRL
-collector (env + policy), sampling a batch of 100 from the replay buffer, the double-DQN loss
-(forward passes), backward, and the optimiser step. Projects the paper's budget
-(500k frames, 500k updates of batch 100) from the measured rates.
+Measures, in one process: collecting frames with the acting policy through the TorchRL
+collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
+includes the sample-time intrinsic reward and ICM's own training step), the double-DQN loss
+(forward passes), backward, and the optimiser step. Projects the paper's budget (500k frames,
+500k updates of batch 100) from the measured rates. With several explorations, each variant's
+update cost is also given relative to the first one, all measured in the same process.
 """
 
 from __future__ import annotations
@@ -19,33 +22,26 @@ import time
 
 import torch
 
+BUDGET_FRAMES = BUDGET_UPDATES = 500_000
 
-def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--num-envs", type=int, default=16)
-    p.add_argument("--updates", type=int, default=300, help="timed updates (default 300)")
-    p.add_argument("--batches", type=int, default=20, help="timed collector batches (default 20)")
-    p.add_argument("--encoder", default="sgd3qn")
-    p.add_argument("--json", action="store_true")
-    args = p.parse_args(argv)
-    if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
-        p.error("all counts must be >= 1")
-    torch.set_num_threads(args.threads)
+
+def measure(exploration: str, args: argparse.Namespace) -> dict:
+    """Collection rate and per-update breakdown (ms) for one exploration variant."""
+    from torchrl.collectors import Collector
 
     from crowdrl.training.config import validate
     from crowdrl.training.trainer import STORED_KEYS, Trainer
-    from torchrl.collectors import Collector
 
-    run = validate({"logger": {"name": "csv"}, "encoder": {"name": args.encoder},
-                    "train": {"num_envs": args.num_envs, "steps_per_batch": 8}})
+    torch.manual_seed(0)
+    run = validate({"logger": {"name": "csv"}, "encoder": {"name": args.encoder}, "exploration": {"name": exploration},
+                    "threads": args.threads, "train": {"num_envs": args.num_envs, "steps_per_batch": 8}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
+    torch.set_num_threads(args.threads)
     collector = Collector(tr.env, tr.policy, frames_per_batch=args.num_envs * 8, total_frames=-1,
                           auto_register_policy_transforms=False)
-    # fill the buffer, warm up
     frames = 0
     it = iter(collector)
-    while frames < 5000:
+    while frames < 5000:  # fill the buffer, warm up
         batch = next(it)
         tr.buffer.extend(batch.select(*STORED_KEYS))
         frames += batch.numel()
@@ -56,11 +52,15 @@ def main(argv: list[str] | None = None) -> dict:
     collect_s = time.perf_counter() - start
     collector.shutdown()
 
-    parts = {"sample": [], "loss_forward": [], "backward": [], "optimizer": []}
+    parts: dict[str, list[float]] = {"sample": [], "loss_forward": [], "backward": [], "optimizer": []}
     for i in range(args.updates + 20):
         t0 = time.perf_counter()
         sample = tr.buffer.sample()
         t1 = time.perf_counter()
+        if exploration == "noisy":
+            from crowdrl.exploration.noisy import reset_noise
+
+            reset_noise(tr.loss)
         loss = tr.loss(sample)["loss"]
         t2 = time.perf_counter()
         tr.optimizer.zero_grad(set_to_none=True)
@@ -72,27 +72,49 @@ def main(argv: list[str] | None = None) -> dict:
             tr.loss.update_target()
         t4 = time.perf_counter()
         if i >= 20:
-            for k, v in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
-                v_list = parts[k]
-                v_list.append(v)
+            for key, value in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                parts[key].append(value)
+    tr.close()
     ms = {k: 1e3 * statistics.mean(v) for k, v in parts.items()}
     update_ms = sum(ms.values())
     frames_per_s = collected / collect_s
-    budget_frames, budget_updates = 500_000, 500_000
-    hours = (budget_frames / frames_per_s + budget_updates * update_ms / 1e3) / 3600
-    result = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoder,
-              "collect_frames_per_s": frames_per_s, "update_ms": update_ms, "update_breakdown_ms": ms,
-              "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours}
+    hours = (BUDGET_FRAMES / frames_per_s + BUDGET_UPDATES * update_ms / 1e3) / 3600
+    return {"exploration": exploration, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
+            "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--num-envs", type=int, default=16)
+    p.add_argument("--updates", type=int, default=300, help="timed updates (default 300)")
+    p.add_argument("--batches", type=int, default=20, help="timed collector batches (default 20)")
+    p.add_argument("--encoder", default="sgd3qn")
+    p.add_argument("--explorations", nargs="+", default=["egreedy"],
+                   choices=["egreedy", "noisy", "dropout", "icm", "re3"])
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
+        p.error("all counts must be >= 1")
+    torch.set_num_threads(args.threads)
+    results = [measure(x, args) for x in args.explorations]
+    base = results[0]["update_ms"]
+    for r in results:
+        r["update_cost_vs_first"] = r["update_ms"] / base
+    out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoder, "batch_size": 100,
+           "results": results}
     if args.json:
-        print(json.dumps(result, indent=1))
-    else:
-        print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}")
-        print(f"collection: {frames_per_s:,.0f} frames/s (env + ε-greedy policy through the collector)")
-        print(f"update (batch 100): {update_ms:.2f} ms = {1e3 / update_ms:.1f} updates/s")
-        for k, v in ms.items():
-            print(f"  {k:<13} {v:6.2f} ms  ({100 * v / update_ms:4.1f}%)")
-        print(f"paper budget (500k frames + 500k updates): {hours:.2f} h projected")
-    return result
+        print(json.dumps(out, indent=1))
+        return out
+    print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}, batch 100")
+    for r in results:
+        print(f"\n[{r['exploration']}] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
+        print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "
+              f"({r['update_cost_vs_first']:.2f}x {results[0]['exploration']})")
+        for k, v in r["update_breakdown_ms"].items():
+            print(f"    {k:<13} {v:6.2f} ms  ({100 * v / r['update_ms']:4.1f}%)")
+        print(f"  paper budget (500k frames + 500k updates): {r['paper_budget_hours']:.2f} h projected")
+    return out
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ Importing the package registers the Gymnasium ids ``crowdrl/CircleCrossing-v0`` 
 ``crowdrl/SquareCrossing-v0``.
 """
 
-from crowdrl.envs.registration import register_gym_envs
+from crowdrl.registration import register_gym_envs
 
 __version__ = "0.1.0"
 

@@ -1,19 +1,5 @@
-"""Gymnasium ids of the crowd scenarios (registered on ``import crowdrl``)."""
+"""Kept for imports written before the ids moved to :mod:`crowdrl.registration`."""
 
-from __future__ import annotations
+from crowdrl.registration import GYM_IDS, register_gym_envs
 
-import gymnasium as gym
-
-GYM_IDS = {"crowdrl/CircleCrossing-v0": "circle", "crowdrl/SquareCrossing-v0": "square"}
-
-
-def register_gym_envs() -> None:
-    """Register the ids once; a second call is a no-op."""
-    for env_id, scenario in GYM_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(
-                id=env_id,
-                entry_point="crowdrl.envs.gym_env:CrowdNavGymEnv",
-                kwargs={"scenario": scenario},
-                max_episode_steps=None,
-            )
+__all__ = ["GYM_IDS", "register_gym_envs"]

@@ -39,6 +39,7 @@ def make_q_actor(
     encoder_name: str,
     action_spec: Categorical,
     in_keys: Sequence[str] = ("robot_rc", "humans_rc"),
+    net: nn.Module | None = None,
     **encoder_kwargs,
 ) -> QValueActor:
     """A ``QValueActor`` reading ``in_keys`` and writing ``"action_value"`` ``[*, n]``, the greedy
@@ -46,13 +47,15 @@ def make_q_actor(
 
     ``action_spec`` is the unbatched ``Categorical(n)`` action spec (a batched env spec such as
     ``CrowdNavEnv.action_spec`` ``[B]`` is reduced to its unbatched form). The Q network is the
-    actor's ``module[0].module`` (a :class:`CrowdQNetwork`).
+    actor's ``module[0].module`` (a :class:`CrowdQNetwork`); pass ``net`` to wrap a network
+    built elsewhere (e.g. with a noisy or dropout head) instead of a fresh one.
     """
     if not isinstance(action_spec, Categorical):
         raise TypeError(f"action_spec must be a torchrl Categorical, got {type(action_spec).__name__}")
     num_actions = int(action_spec.n)
     if action_spec.shape != ():
         action_spec = Categorical(num_actions, dtype=action_spec.dtype, device=action_spec.device)
-    net = make_q_network(encoder_name, num_actions=num_actions, **encoder_kwargs)
+    if net is None:
+        net = make_q_network(encoder_name, num_actions=num_actions, **encoder_kwargs)
     module = TensorDictModule(net, in_keys=list(in_keys), out_keys=["action_value"])
     return QValueActor(module, in_keys=list(in_keys), spec=action_spec)

@@ -21,7 +21,8 @@ from crowdrl.models import ENCODERS
 from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
-EXPLORATIONS = ("egreedy",)
+EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")
+INTRINSIC = ("icm", "re3")
 LOGGERS = ("wandb", "csv")
 WANDB_MODES = ("offline", "online", "disabled")
 
@@ -43,10 +44,20 @@ class EncoderConfig:
 
 @dataclass
 class ExplorationConfig:
+    """Exploration variant (SPEC §4). ``anneal_frames`` is the length of the ε schedule and of the
+    dropout-p schedule; ``eps_*`` apply to every variant (the non-ε variants set them to 0)."""
+
     name: str = "egreedy"
     eps_start: float = 0.5
     eps_end: float = 0.1
     anneal_frames: int = 4000 * FRAMES_PER_EPISODE
+    sigma0: float = 0.5  # noisy: factorised NoisyLinear σ0
+    dropout_start: float = 0.5  # dropout: p decays linearly start -> end over anneal_frames
+    dropout_end: float = 0.01
+    beta: float = 0.01  # icm/re3: r = r_ext + β r_in
+    beta_end: float | None = None  # icm/re3: None = constant β, else linear β -> beta_end over anneal_frames
+    icm_lr: float = 1e-4
+    re3_k: int = 3
 
 
 @dataclass
@@ -119,6 +130,14 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",
            f"need 0 <= eps_end <= eps_start <= 1, got {x.eps_start} -> {x.eps_end}")
     _check(x.anneal_frames >= 1, "exploration.anneal_frames", f"must be >= 1, got {x.anneal_frames}")
+    _check(x.sigma0 > 0, "exploration.sigma0", f"must be > 0, got {x.sigma0}")
+    for key in ("dropout_start", "dropout_end"):
+        _check(0 <= getattr(x, key) < 1, f"exploration.{key}", f"must lie in [0, 1), got {getattr(x, key)}")
+    _check(x.beta >= 0, "exploration.beta", f"must be >= 0, got {x.beta}")
+    _check(x.beta_end is None or x.beta_end >= 0, "exploration.beta_end", f"must be >= 0 or null, got {x.beta_end}")
+    _check(x.icm_lr > 0, "exploration.icm_lr", f"must be > 0, got {x.icm_lr}")
+    _check(1 <= x.re3_k < run.train.batch_size, "exploration.re3_k",
+           f"must lie in 1..train.batch_size-1 ({run.train.batch_size - 1}), got {x.re3_k}")
     _one_of(run.logger.name, "logger.name", LOGGERS)
     _one_of(run.logger.mode, "logger.mode", WANDB_MODES)
     for key in ("num_envs", "steps_per_batch", "total_frames", "buffer_size", "batch_size", "n_step",

@@ -13,6 +13,10 @@ truncated) and at the end of the batch. The stored transition then holds
 
 Windows cut by the batch end are shorter, never wrong. ``n = 1`` leaves every transition as
 collected (plus ``steps_to_next_obs = 1``).
+
+With ``one_step_key`` set (e.g. ``"one_step_next"``), the one-step successor ``s_{t+1}`` is kept
+under ``(one_step_key, obs)`` for every observation key: intrinsic rewards (ICM's forward
+model, RE3's embedding of ``s'``) are defined on single transitions even when the target is n-step.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import Transform
 
 
-def nstep_transitions(batch: TensorDictBase, n: int, gamma: float, obs_keys: Sequence[str]) -> TensorDictBase:
+def nstep_transitions(batch: TensorDictBase, n: int, gamma: float, obs_keys: Sequence[str],
+                      one_step_key: str | None = None) -> TensorDictBase:
     """Rewrite a ``[B, T]`` batch (time last) into n-step transitions; see the module docstring."""
     if isinstance(n, bool) or int(n) != n or n < 1:
         raise ValueError(f"n (n-step) must be an integer >= 1, got {n!r}")
@@ -43,6 +48,9 @@ def nstep_transitions(batch: TensorDictBase, n: int, gamma: float, obs_keys: Seq
 
     out = batch.clone(False)
     out_next = out.get("next").clone(False)
+    if one_step_key is not None:
+        for key in obs_keys:
+            out.set((one_step_key, key), nxt.get(key))
     if n == 1:
         out.set("steps_to_next_obs", torch.ones(B, T, 1, dtype=torch.int64, device=batch.device))
         return out
@@ -80,16 +88,17 @@ class NStepReturn(Transform):
     the output is flattened to ``[B * T]`` transitions.
     """
 
-    def __init__(self, n: int, gamma: float, obs_keys: Sequence[str]) -> None:
+    def __init__(self, n: int, gamma: float, obs_keys: Sequence[str], one_step_key: str | None = None) -> None:
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ValueError(f"n (n-step) must be an integer >= 1, got {n!r}")
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         super().__init__(in_keys=[], out_keys=[])
         self.n, self.gamma, self.obs_keys = int(n), float(gamma), list(obs_keys)
+        self.one_step_key = one_step_key
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        return nstep_transitions(tensordict, self.n, self.gamma, self.obs_keys).reshape(-1)
+        return nstep_transitions(tensordict, self.n, self.gamma, self.obs_keys, self.one_step_key).reshape(-1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict

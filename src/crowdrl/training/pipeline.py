@@ -10,10 +10,10 @@ from typing import Any
 import torch
 
 from crowdrl.evaluation import evaluate_policy
-from crowdrl.models import make_q_network
 from crowdrl.training.checkpoint import atomic_write_bytes, load_checkpoint
 from crowdrl.training.config import RunConfig
 from crowdrl.training.trainer import Trainer, greedy_policy
+from crowdrl.training.variants import make_network
 from crowdrl.viz import animate_trajectory, plot_learning_curves, plot_trajectory
 
 
@@ -47,9 +47,9 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
     from crowdrl.sim.config import CrowdConfig
 
     best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
-    net = make_q_network(run.encoder.name)
+    net = make_network(run)
     net.load_state_dict(best["net"])
-    net.eval()
+    net.eval()  # noise and dropout off: the greedy policy of the mean network
     cfg = CrowdConfig(scenario=run.env.scenario, num_humans=run.env.num_humans)
     metrics, traj = evaluate_policy(cfg, greedy_policy(net), split="test", seed=0,
                                     num_episodes=run.train.test_episodes,

@@ -27,6 +27,8 @@ from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
 from torchrl.modules import EGreedyModule
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric, robot_centric
+from crowdrl.exploration.dropout import set_dropout_p
+from crowdrl.exploration.noisy import noise_disabled, reset_noise
 from crowdrl.evaluation import DiscreteActionPolicy, EpisodeMetrics, evaluate_policy
 from crowdrl.models import make_q_actor
 from crowdrl.sim.config import CrowdConfig
@@ -35,6 +37,8 @@ from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, loa
 from crowdrl.training.config import RunConfig, to_dict
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.nstep import NStepReturn
+from crowdrl.training.variants import (ONE_STEP_KEY, make_bonus, make_intrinsic_transform, make_network,
+                                       uses_one_step_successor)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 
 OBS_KEYS = ("robot_rc", "humans_rc")
@@ -86,8 +90,8 @@ class Trainer:
         base = CrowdNavEnv(config=self.crowd_cfg, scenario=run.env.scenario, num_humans=run.env.num_humans,
                            num_envs=t.num_envs, seed=run.seed, split="train", device=run.device)
         self.env = TransformedEnv(base, Compose(RobotCentric(), StepCounter(), RewardSum()))
-        self.actor = make_q_actor(run.encoder.name, base.action_spec).to(run.device)
-        self.net = self.actor.module[0].module
+        self.net = make_network(run, int(base.action_spec.n)).to(run.device)
+        self.actor = make_q_actor(run.encoder.name, base.action_spec, net=self.net)
         self.egreedy = EGreedyModule(base.action_spec, eps_init=run.exploration.eps_start,
                                      eps_end=run.exploration.eps_end, annealing_num_steps=run.exploration.anneal_frames)
         self.policy = TensorDictSequential(self.actor, self.egreedy)
@@ -96,12 +100,21 @@ class Trainer:
         self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
         # fused Adam: one kernel for all parameters (~4x cheaper than the per-tensor loop on CPU)
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=t.lr, fused=True)
+        self.counters = Counters()
+        # ICM / RE3: built after the Q network, from their own seeds (the global RNG is untouched)
+        self.bonus = make_bonus(run, list(OBS_KEYS), int(base.action_spec.n))
+        one_step = ONE_STEP_KEY if uses_one_step_successor(run) else None
+        transform = NStepReturn(t.n_step, t.gamma, OBS_KEYS, one_step_key=one_step)
+        self.intrinsic = None
+        if self.bonus is not None:
+            self.bonus.to(run.device)
+            self.intrinsic = make_intrinsic_transform(run, self.bonus, list(OBS_KEYS), lambda: self.counters.frames)
+            transform = Compose(transform, self.intrinsic)
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(t.buffer_size, device=run.device),
             batch_size=t.batch_size,
-            transform=NStepReturn(t.n_step, t.gamma, OBS_KEYS),
+            transform=transform,
         )
-        self.counters = Counters()
         self.log = None
         self.wandb = None
 
@@ -115,6 +128,10 @@ class Trainer:
             "config": self.config_dict,
             "wandb_id": self.wandb.id if self.wandb else None,
         }
+        if self.bonus is not None:
+            payload["bonus"] = self.bonus.state_dict()
+            if getattr(self.bonus, "optimizer", None) is not None:
+                payload["bonus_optimizer"] = self.bonus.optimizer.state_dict()
         if self.run.train.save_buffer:
             payload["buffer"] = self.buffer.state_dict()
         return payload
@@ -124,6 +141,10 @@ class Trainer:
         self.optimizer.load_state_dict(data["optimizer"])
         self.counters = Counters(**data["counters"])
         torch.set_rng_state(data["torch_rng"])
+        if self.bonus is not None:
+            self.bonus.load_state_dict(data["bonus"])
+            if "bonus_optimizer" in data:
+                self.bonus.optimizer.load_state_dict(data["bonus_optimizer"])
         if "buffer" in data:
             self.buffer.load_state_dict(data["buffer"])
 
@@ -161,8 +182,7 @@ class Trainer:
                 frames = batch.numel()
                 c.frames += frames
                 c.next_train_episode = self.env.base_env._next_episode
-                self.egreedy.eps.fill_(linear_schedule(run.exploration.eps_start, run.exploration.eps_end,
-                                                       run.exploration.anneal_frames, c.frames))
+                self._set_schedules()
                 finished = _finished_episodes(batch)
                 c.episodes += len(finished)
                 recent.extend(finished)
@@ -196,6 +216,15 @@ class Trainer:
         self._write_status("trained", **summary)
         return summary
 
+    def _set_schedules(self) -> None:
+        """Per collected batch: ε, the dropout p, a fresh noise sample for the next batch's actions."""
+        x, frames = self.run.exploration, self.counters.frames
+        self.egreedy.eps.fill_(linear_schedule(x.eps_start, x.eps_end, x.anneal_frames, frames))
+        if x.name == "dropout":
+            set_dropout_p(self.net, linear_schedule(x.dropout_start, x.dropout_end, x.anneal_frames, frames))
+        elif x.name == "noisy":
+            reset_noise(self.net)
+
     def _update(self, frames: int) -> float:
         t, c = self.run.train, self.counters
         c.update_credit += frames * t.updates_per_frame
@@ -210,6 +239,8 @@ class Trainer:
 
     def update_once(self, sample: TensorDictBase) -> float:
         """One gradient step on a sampled batch (and the target copy when it is due); returns the loss."""
+        if self.run.exploration.name == "noisy":
+            reset_noise(self.loss)  # independent noise for the online and the target network
         loss = self.loss(sample)["loss"]
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -222,8 +253,9 @@ class Trainer:
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
         c.last_val = c.frames
-        metrics, _ = evaluate_policy(self.crowd_cfg, greedy_policy(self.net), split="val", seed=self.run.seed,
-                                     num_episodes=t.val_episodes, batch_size=t.val_episodes, device=self.run.device)
+        with noise_disabled(self.net):  # greedy on the mean weights (no-op without noisy layers)
+            metrics, _ = evaluate_policy(self.crowd_cfg, greedy_policy(self.net), split="val", seed=self.run.seed,
+                                         num_episodes=t.val_episodes, batch_size=t.val_episodes, device=self.run.device)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
                **{f"val/{k}": v for k, v in metrics.as_dict().items()}}
@@ -250,6 +282,7 @@ class Trainer:
             "train/navigation_time": (sum(succ_steps) / len(succ_steps) * self.crowd_cfg.time_step) if succ_steps else math.nan,
             "train/epsilon": float(self.egreedy.eps),
             "train/loss": loss_value,
+            **({f"train/intrinsic_{k}": v for k, v in self.intrinsic.last_stats.items()} if self.intrinsic else {}),
             **{f"time/{k}_s": v for k, v in timers.items()},
         })
 

@@ -1,0 +1,161 @@
+"""Dropout exploration for the dueling head (``SPEC.md`` §4): dropout after each hidden ReLU of
+the head **during action selection**, ``p`` decaying linearly 0.5 -> 0.01, no ε-greedy.
+
+When dropout is on, and why:
+
+* **action selection (collection)** — on. A fresh mask per forward, i.e. per env step and per
+  env of the batch (each of the ``B`` envs explores with its own thinned network).
+* **loss and target** — off: SPEC applies dropout "during action selection", so the TD target
+  and ``Q(s, a)`` are those of the full network the greedy policy uses, and the update is
+  deterministic given the batch.
+* **evaluation** — off (greedy policy).
+
+Gating. A :class:`ScheduledDropout` drops iff ``p > 0``, the module is in training mode, and it is
+*acting*: either its ``acting`` flag is ``True`` (:func:`acting`, :func:`set_acting`), or the flag
+is ``None`` (the default, "auto") and the torchrl exploration type is ``RANDOM``. torchrl's
+``Collector`` runs the policy under ``set_exploration_type(RANDOM)`` (its default) while
+``LossModule.forward`` sets ``DETERMINISTIC`` and plain calls (``greedy_policy``, the crowdrl
+evaluator) run with no exploration type, so in auto mode the trainer needs no wiring: dropout is
+on in the collector's policy call and off in the loss, the target and validation (a loss that
+sets no exploration type, like ``crowdrl.training.loss.D3QNLoss``, is off as long as it is not
+called inside a ``RANDOM`` block; wrap it in ``acting(net, False)`` to be explicit). Plain
+``train()``/``eval()`` alone cannot express this (the loss runs the same modules in training
+mode), so ``eval()`` only acts as an extra global "off".
+
+Layout. Each hidden ``nn.ReLU`` is replaced by ``nn.Sequential(ReLU, ScheduledDropout)`` rather
+than inserting a module into the ``nn.Sequential`` stacks, so the Linear layers keep their
+indices: the ``state_dict`` of a dropout head loads into a plain :class:`DuelingHead` (and back)
+unchanged, and the greedy test policy can be a plain network.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Iterator
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from crowdrl.models.dueling import DuelingHead
+from crowdrl.models.qnet import CrowdQNetwork, make_q_network
+
+
+def _check_p(p: float) -> float:
+    p = float(p)
+    if not 0.0 <= p < 1.0:
+        raise ValueError(f"dropout probability p must lie in [0, 1), got p={p}")
+    return p
+
+
+class ScheduledDropout(nn.Module):
+    """Element-wise (inverted) dropout with a runtime-settable ``p``, active only while acting.
+
+    ``acting``: ``True`` forces it on, ``False`` off, ``None`` (default) follows torchrl's
+    exploration type (on under ``ExplorationType.RANDOM``, which collectors set around the policy).
+    Never active in ``eval()`` mode or with ``p == 0``.
+    """
+
+    def __init__(self, p: float = 0.5) -> None:
+        super().__init__()
+        self.p = _check_p(p)
+        self.acting: bool | None = None
+
+    def is_active(self) -> bool:
+        if self.p == 0.0 or not self.training:
+            return False
+        if self.acting is None:
+            return exploration_type() is ExplorationType.RANDOM
+        return self.acting
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.dropout(x, self.p, training=True) if self.is_active() else x
+
+    def extra_repr(self) -> str:
+        return f"p={self.p}, acting={self.acting}"
+
+
+def dropout_layers(module: nn.Module) -> list[ScheduledDropout]:
+    """The :class:`ScheduledDropout` modules of ``module``'s tree."""
+    return [m for m in module.modules() if isinstance(m, ScheduledDropout)]
+
+
+def add_action_dropout(head: DuelingHead, p: float = 0.5) -> DuelingHead:
+    """Put a :class:`ScheduledDropout` ``p`` after every ``nn.ReLU`` of ``head``, in place; returns
+    ``head``. For a :class:`DuelingHead` these are its 4 hidden ReLUs (trunk 2, value 1,
+    advantage 1); the output layers have no activation. Parameter names are unchanged."""
+    p = _check_p(p)
+    if dropout_layers(head):
+        raise ValueError(f"{type(head).__name__} already has action dropout")
+    added = 0
+    for parent in list(head.modules()):
+        for name, child in list(parent.named_children()):
+            if isinstance(child, nn.ReLU):
+                setattr(parent, name, nn.Sequential(child, ScheduledDropout(p)))
+                added += 1
+    if added == 0:
+        raise ValueError(f"{type(head).__name__} has no nn.ReLU after which to put dropout")
+    return head
+
+
+def make_dropout_q_network(encoder_name: str = "sgd3qn", p: float = 0.5, num_actions: int = 81,
+                           hidden: int = 128, **encoder_kwargs) -> CrowdQNetwork:
+    """:func:`~crowdrl.models.make_q_network` with action dropout ``p`` in the dueling head."""
+    net = make_q_network(encoder_name, num_actions=num_actions, hidden=hidden, **encoder_kwargs)
+    add_action_dropout(net.head, p)
+    return net
+
+
+def set_dropout_p(module: nn.Module, p: float) -> None:
+    """Set ``p`` of every :class:`ScheduledDropout` under ``module`` (e.g. once per collected batch)."""
+    p = _check_p(p)
+    for layer in dropout_layers(module):
+        layer.p = p
+
+
+def set_acting(module: nn.Module, flag: bool | None) -> None:
+    """Set the ``acting`` flag of every :class:`ScheduledDropout` under ``module``
+    (``True`` on, ``False`` off, ``None`` follow the torchrl exploration type)."""
+    if flag is not None and not isinstance(flag, bool):
+        raise TypeError(f"acting flag must be True, False or None, got {flag!r}")
+    for layer in dropout_layers(module):
+        layer.acting = flag
+
+
+@contextmanager
+def acting(module: nn.Module, flag: bool = True) -> Iterator[nn.Module]:
+    """Within the block every :class:`ScheduledDropout` under ``module`` is forced on
+    (``flag=True``, action selection outside a collector) or off (``flag=False``); the previous
+    flags are restored after."""
+    layers = dropout_layers(module)
+    previous = [layer.acting for layer in layers]
+    try:
+        set_acting(module, flag)
+        yield module
+    finally:
+        for layer, prev in zip(layers, previous):
+            layer.acting = prev
+
+
+def dropout_schedule(frame: int, start: float = 0.5, end: float = 0.01, *, duration_frames: int) -> float:
+    """``start`` -> ``end`` linearly over ``duration_frames`` collected frames, then ``end``.
+
+    SPEC's 7000 episodes are frames here: pass the frame count the trainer uses for its
+    ε schedule (``exploration.anneal_frames``-like), so all variants decay on the same clock.
+    """
+    _check_p(start), _check_p(end)
+    if duration_frames < 1:
+        raise ValueError(f"duration_frames must be >= 1, got duration_frames={duration_frames}")
+    return end + (start - end) * min(1.0, max(0.0, 1.0 - frame / duration_frames))
+
+
+__all__ = [
+    "ScheduledDropout",
+    "acting",
+    "add_action_dropout",
+    "dropout_layers",
+    "dropout_schedule",
+    "make_dropout_q_network",
+    "set_acting",
+    "set_dropout_p",
+]

@@ -1,0 +1,239 @@
+"""Intrinsic rewards for off-policy RL, computed when a replay buffer is *sampled*.
+
+:class:`IntrinsicRewardTransform` sits in a ``TensorDictReplayBuffer(transform=...)`` (alone, or
+in a ``Compose`` after transforms whose ``inv`` runs at ``extend``). On every sampled batch it
+asks an :class:`IntrinsicBonus` (ICM, RE3, ...) for ``r_in`` with the bonus's *current* networks,
+so bonuses are never stale, and writes ``r = r_ext + beta * r_in``. The buffer's storage is never
+touched: sampling returns a copy, and only that copy is rewritten.
+
+Nothing here depends on the crowd simulator: any TorchRL env whose transitions carry the
+observation keys, the action and ``("next", "reward")`` works.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import Callable, Iterator, Sequence, Union
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor, nn
+from torchrl.envs import Transform
+
+Beta = Union[float, Callable[[], float]]
+
+
+def _as_key(key: NestedKey) -> NestedKey:
+    """Nested keys as tuples, plain string keys as strings."""
+    if isinstance(key, str):
+        return key
+    key = tuple(key)
+    return key[0] if len(key) == 1 else key
+
+
+def _check_beta(beta: float, where: str) -> float:
+    beta = float(beta)
+    if not math.isfinite(beta) or beta < 0.0:
+        raise ValueError(f"beta (intrinsic reward scale) must be a finite float >= 0, got {beta} ({where})")
+    return beta
+
+
+class IntrinsicBonus(nn.Module):
+    """Base class of intrinsic-reward models.
+
+    ``in_keys`` is a sequence of keys (a single string is one key; a nested key must be wrapped,
+    e.g. ``[("agent", "obs")]``), in the order the feature encoder takes them as arguments.
+
+    Both methods take a flat-layout tensordict with batch dims ``[*B]``: the observation of ``s``
+    under each key of :attr:`in_keys`, the observation of ``s'`` under ``("next", key)`` and the
+    action under ``"action"``. :class:`IntrinsicRewardTransform` builds that layout from whatever
+    keys the buffer uses.
+
+    * :meth:`bonus` returns ``r_in`` shaped ``[*B]``, without gradients, computed with the
+      current networks;
+    * :meth:`update` takes one training step on the batch and returns scalars to log (a no-op
+      returning ``{}`` for models that do not learn).
+    """
+
+    def __init__(self, in_keys: Sequence[NestedKey]) -> None:
+        super().__init__()
+        if isinstance(in_keys, str):
+            in_keys = [in_keys]
+        in_keys = [_as_key(k) for k in in_keys]
+        if not in_keys:
+            raise ValueError("an intrinsic bonus needs at least one observation key")
+        self.in_keys: list[NestedKey] = in_keys
+
+    def obs(self, td: TensorDictBase, next_: bool = False) -> list[Tensor]:
+        """The observation tensors of ``s`` (or of ``s'`` with ``next_=True``), in ``in_keys`` order."""
+        return [td.get(("next", *_tuple(k)) if next_ else k) for k in self.in_keys]
+
+    def bonus(self, td: TensorDictBase) -> Tensor:  # pragma: no cover - abstract
+        """``r_in`` ``[*B]`` with the current networks, no gradient."""
+        raise NotImplementedError
+
+    def update(self, td: TensorDictBase) -> dict[str, float]:
+        """One training step on the batch; scalars to log. The base class learns nothing."""
+        return {}
+
+    def bonus_and_update(self, td: TensorDictBase) -> tuple[Tensor, dict[str, float]]:
+        """``bonus(td)`` with the networks as they are, then ``update(td)``; subclasses may fuse the two."""
+        with torch.no_grad():
+            r_in = self.bonus(td)
+        return r_in, self.update(td)
+
+    def forward(self, td: TensorDictBase) -> Tensor:
+        """Same as :meth:`bonus`."""
+        return self.bonus(td)
+
+
+def _tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
+def seeded_init(seed: int | None) -> contextlib.AbstractContextManager:
+    """Context for building parameters: with a ``seed``, a private RNG stream (the global torch RNG
+    is left as it was); with ``None``, the global stream as usual."""
+    if seed is None:
+        return contextlib.nullcontext()
+    return _seeded(int(seed))
+
+
+@contextlib.contextmanager
+def _seeded(seed: int) -> Iterator[None]:
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+def feature_dim_of(encoder: nn.Module, feature_dim: int | None) -> int:
+    """Output width of a feature encoder: ``feature_dim`` if given, else ``encoder.embedding_dim``."""
+    if feature_dim is None:
+        feature_dim = getattr(encoder, "embedding_dim", None)
+        if feature_dim is None:
+            raise ValueError(f"cannot tell the output width of {type(encoder).__name__}: give it an "
+                             "`embedding_dim` attribute or pass feature_dim=")
+    if int(feature_dim) < 1:
+        raise ValueError(f"feature_dim must be >= 1, got {feature_dim}")
+    return int(feature_dim)
+
+
+class IntrinsicRewardTransform(Transform):
+    """Replay-buffer transform: ``("next", "reward") <- r_ext + beta * r_in`` on sampled batches.
+
+    Args:
+        bonus: the intrinsic-reward model.
+        beta: scale of ``r_in``, a float ``>= 0`` or a zero-argument callable returning the current
+            value (a schedule, read once per sampled batch).
+        obs_keys: keys of ``s`` in the buffer, matched one to one with ``bonus.in_keys``
+            (default: ``bonus.in_keys``).
+        next_obs_keys: keys of ``s'`` (default ``("next", k)`` for each obs key). Point them at a
+            one-step successor stored elsewhere when an n-step transform rewrote ``("next", obs)``
+            to the n-th successor.
+        action_key: key of the action (index ``[*B]``/``[*B, 1]`` or one-hot ``[*B, A]``).
+        reward_key, reward_ext_key, reward_int_key: where the total, extrinsic and intrinsic
+            rewards go; the latter two get the reward's shape.
+        update_bonus: if True, ``bonus.update(batch)`` runs on every sampled batch *after* the
+            rewards are computed (so ICM trains on the batches the Q loss sees).
+
+    ``beta == 0`` returns the extrinsic reward bit for bit. Neither the transform nor the
+    bundled bonuses draw from the global RNG. ``inv`` (run at ``extend``) is the identity, and
+    stored rewards never change. The scalars of the last call are kept in :attr:`last_stats`.
+    """
+
+    def __init__(
+        self,
+        bonus: IntrinsicBonus,
+        beta: Beta = 0.01,
+        *,
+        obs_keys: Sequence[NestedKey] | None = None,
+        next_obs_keys: Sequence[NestedKey] | None = None,
+        action_key: NestedKey = "action",
+        reward_key: NestedKey = ("next", "reward"),
+        reward_ext_key: NestedKey = ("next", "reward_ext"),
+        reward_int_key: NestedKey = ("next", "reward_int"),
+        update_bonus: bool = True,
+    ) -> None:
+        super().__init__(in_keys=[], out_keys=[])
+        if not isinstance(bonus, IntrinsicBonus):
+            raise TypeError(f"bonus must be an IntrinsicBonus, got {type(bonus).__name__}")
+        if not callable(beta):
+            beta = _check_beta(beta, "at construction")
+        obs_keys = list(bonus.in_keys) if obs_keys is None else [_as_key(k) for k in obs_keys]
+        if len(obs_keys) != len(bonus.in_keys):
+            raise ValueError(f"obs_keys {obs_keys} must match the bonus's in_keys {bonus.in_keys} one to one")
+        if next_obs_keys is None:
+            next_obs_keys = [("next", *_tuple(k)) for k in obs_keys]
+        else:
+            next_obs_keys = [_as_key(k) for k in next_obs_keys]
+            if len(next_obs_keys) != len(obs_keys):
+                raise ValueError(f"next_obs_keys {next_obs_keys} must match obs_keys {obs_keys} one to one")
+        self.bonus = bonus
+        self.beta = beta
+        self.obs_keys = obs_keys
+        self.next_obs_keys = next_obs_keys
+        self.action_key = _as_key(action_key)
+        self.reward_key = _as_key(reward_key)
+        self.reward_ext_key = _as_key(reward_ext_key)
+        self.reward_int_key = _as_key(reward_int_key)
+        self.update_bonus = bool(update_bonus)
+        self.last_stats: dict[str, float] = {}
+
+    def current_beta(self) -> float:
+        """The scale in force now (calls the schedule if ``beta`` is callable)."""
+        return _check_beta(self.beta(), "returned by the beta schedule") if callable(self.beta) else self.beta
+
+    def _get(self, td: TensorDictBase, key: NestedKey) -> Tensor:
+        value = td.get(key, None)
+        if value is None:
+            present = ", ".join(sorted(repr(k) for k in td.keys(include_nested=True, leaves_only=True)))
+            raise KeyError(f"IntrinsicRewardTransform: key {key!r} is missing from the sampled batch; "
+                           f"keys present: {present}")
+        return value
+
+    def bonus_input(self, td: TensorDictBase) -> TensorDictBase:
+        """The batch in the bonus's layout: ``in_keys`` for ``s``, ``("next", k)`` for ``s'``, ``"action"``."""
+        out = TensorDict({}, batch_size=td.batch_size, device=td.device)
+        for bonus_key, key, next_key in zip(self.bonus.in_keys, self.obs_keys, self.next_obs_keys):
+            out.set(bonus_key, self._get(td, key))
+            out.set(("next", *_tuple(bonus_key)), self._get(td, next_key))
+        out.set("action", self._get(td, self.action_key))
+        return out
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        r_ext = self._get(tensordict, self.reward_key)
+        lead = tuple(tensordict.batch_size)
+        if r_ext.shape[: len(lead)] != lead:
+            raise ValueError(f"reward {self.reward_key!r} shaped {tuple(r_ext.shape)} does not start with the batch {lead}")
+        inputs = self.bonus_input(tensordict)
+        beta = self.current_beta()
+        if self.update_bonus:
+            r_in, update_stats = self.bonus.bonus_and_update(inputs)
+        else:
+            with torch.no_grad():
+                r_in = self.bonus.bonus(inputs)
+            update_stats = {}
+        r_in = r_in.detach()
+        if tuple(r_in.shape) != lead:
+            raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(r_in.shape)}, expected {lead}")
+        r_in = r_in.reshape(*lead, *([1] * (r_ext.dim() - len(lead)))).expand_as(r_ext).to(r_ext.dtype)
+        # beta == 0: exactly r_ext (0 * r_in could turn -0.0 into +0.0, or inf into nan)
+        total = r_ext.clone() if beta == 0.0 else r_ext + beta * r_in
+        # ``set`` replaces entries of the sampled copy; nothing is written in place
+        tensordict.set(self.reward_ext_key, r_ext)
+        tensordict.set(self.reward_int_key, r_in.contiguous())
+        tensordict.set(self.reward_key, total)
+        stats = {"beta": beta, "reward_int_mean": float(r_in.mean()), "reward_int_max": float(r_in.max()),
+                 "reward_int_min": float(r_in.min())}
+        stats.update(update_stats)
+        self.last_stats = stats
+        return tensordict
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError("IntrinsicRewardTransform needs whole transitions (s, a, s'); use it in a replay "
+                           "buffer (TensorDictReplayBuffer(transform=...)), not inside an environment")

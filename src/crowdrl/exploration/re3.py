@@ -1,0 +1,144 @@
+"""Random Encoders for Efficient Exploration (RE3, Seo et al., 2021) as an :class:`IntrinsicBonus`.
+
+A random encoder, frozen at initialisation (the user's feature encoder followed by
+Linear(D, 256)-ReLU-Linear(256, 128), never trained), embeds each sampled state into 128-d. For
+each sample ``i`` of the batch, ``d_i`` is the Euclidean distance from ``e_i`` to its k-th nearest
+neighbour among the *other* samples of the batch (k = 3), a particle estimate of state entropy.
+The bonus is ``r_in = log(1 + d_i / sigma)``, where ``sigma`` is a running standard deviation of
+all the ``d`` seen so far, which makes ``r_in`` independent of the random encoder's output scale.
+
+Choices:
+
+* **which state**: by default the successor ``s'`` of each transition (``embed_next=True``): the
+  bonus then rewards the action for *reaching* a novel state, as the reward ``r(s, a, s')`` does.
+  A bonus on ``s`` is the same for every action at ``s`` and reaches the policy one step later,
+  through bootstrapping. ``embed_next=False`` embeds ``s``.
+* **running std**: updated inside :meth:`RE3.bonus` with the batch's distances *before* they are
+  normalised (so the first batch is scaled by its own spread, and the statistics keep moving when
+  the transform's ``update_bonus`` is off). :meth:`RE3.update` is a no-op. The statistics are
+  buffers (in ``state_dict``).
+* duplicates in a batch sampled with replacement are distinct samples at distance 0.
+
+Upstream (the crowd-navigation paper's code, copied from RLlib, ray issue 38450) used the
+neighbour's batch *index* (an ``argsort`` result) in place of its distance, so its RE3 bonus was
+noise. This module implements the method as published.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor, nn
+
+from crowdrl.exploration.intrinsic import IntrinsicBonus, feature_dim_of, seeded_init
+
+EMBED_DIM = 128
+
+
+class RunningStd(nn.Module):
+    """Running mean/variance of a scalar stream (pooled batch moments, exact for the union)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("m2", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: Tensor) -> None:
+        x = x.detach().reshape(-1).to(self.mean.dtype)
+        n = x.numel()
+        if n == 0:
+            return
+        batch_mean = x.mean()
+        batch_m2 = (x - batch_mean).pow(2).sum()
+        total = self.count + n
+        delta = batch_mean - self.mean
+        self.mean.add_(delta * (n / total))
+        self.m2.add_(batch_m2 + delta.pow(2) * (self.count * n / total))
+        self.count.copy_(total)
+
+    @property
+    def std(self) -> Tensor:
+        """Population standard deviation (0 before any data)."""
+        return (self.m2 / self.count.clamp_min(1.0)).sqrt()
+
+
+class RE3(IntrinsicBonus):
+    """State-entropy bonus from a random frozen encoder and k-nearest-neighbour distances.
+
+    Args:
+        feature_encoder: a module of its own mapping the observation tensors (``in_keys`` order)
+            to ``[*B, D]``; it is frozen in place (``requires_grad=False``, eval mode), so do not
+            pass the value network's encoder.
+        in_keys: observation keys fed to the encoder.
+        k: which nearest neighbour, ``1 <= k < batch size``.
+        feature_dim: ``D``; defaults to ``feature_encoder.embedding_dim``.
+        embed_next: embed ``s'`` (default) or ``s``; see the module docstring.
+        eps: floor of the running std.
+        seed: if given, the random head is drawn from this seed without touching the global RNG.
+    """
+
+    def __init__(
+        self,
+        feature_encoder: nn.Module,
+        in_keys: Sequence[NestedKey] = ("observation",),
+        *,
+        k: int = 3,
+        feature_dim: int | None = None,
+        embed_next: bool = True,
+        eps: float = 1e-8,
+        seed: int | None = None,
+    ) -> None:
+        super().__init__(in_keys)
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"k (nearest neighbour rank) must be an integer >= 1, got {k!r}")
+        dim = feature_dim_of(feature_encoder, feature_dim)
+        self.k = int(k)
+        self.embed_next = bool(embed_next)
+        self.eps = float(eps)
+        with seeded_init(seed):
+            self.head = nn.Sequential(nn.Linear(dim, 256), nn.ReLU(), nn.Linear(256, EMBED_DIM))
+        self.encoder = feature_encoder
+        for module in (self.encoder, self.head):
+            module.requires_grad_(False)
+            module.eval()
+        self.dist_stats = RunningStd()
+
+    def train(self, mode: bool = True) -> "RE3":
+        super().train(mode)
+        self.encoder.eval()  # frozen: dropout / batch-norm layers, if any, stay in eval mode
+        self.head.eval()
+        return self
+
+    @torch.no_grad()
+    def embed(self, obs: Sequence[Tensor]) -> Tensor:
+        """``e``: ``[*B, 128]``."""
+        return self.head(self.encoder(*obs))
+
+    @torch.no_grad()
+    def knn_distance(self, td: TensorDictBase) -> Tensor:
+        """Distance ``[*B]`` from each sample's embedding to its k-th nearest other sample."""
+        n = td.batch_size.numel()
+        if self.k >= n:
+            raise ValueError(f"RE3 needs more samples than k: k = {self.k}, batch of {n} "
+                             f"(k must be < the batch size; excluding itself each sample has {n - 1} neighbours)")
+        e = self.embed(self.obs(td, next_=self.embed_next)).reshape(n, -1)
+        dist = torch.cdist(e, e, compute_mode="donot_use_mm_for_euclid_dist")
+        dist.fill_diagonal_(float("inf"))  # a sample is not its own neighbour
+        return dist.kthvalue(self.k, dim=1).values.reshape(td.batch_size)
+
+    @torch.no_grad()
+    def bonus(self, td: TensorDictBase) -> Tensor:
+        """``log(1 + d_kNN / running_std)``; also folds the batch's distances into the running std."""
+        d = self.knn_distance(td)
+        self.dist_stats.update(d)
+        sigma = self.dist_stats.std.clamp_min(self.eps).to(d.dtype)
+        return torch.log1p(d / sigma)
+
+    def update(self, td: TensorDictBase) -> dict[str, float]:
+        """Nothing to train; reports the running std."""
+        return {"re3_dist_std": float(self.dist_stats.std)}

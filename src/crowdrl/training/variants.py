@@ -1,0 +1,76 @@
+"""The exploration variant of a run (``exploration.name``), built from its config.
+
+* ``egreedy``: the plain dueling network, ε-greedy acting.
+* ``noisy``: every head layer a factorised NoisyLinear (σ0), ε = 0.
+* ``dropout``: dropout after each hidden ReLU of the head while acting, p scheduled, ε = 0.
+* ``icm`` / ``re3``: the plain network plus an intrinsic bonus computed at sample time by an
+  :class:`~crowdrl.exploration.IntrinsicRewardTransform` in the replay buffer, ε = 0.
+
+Shared by the trainer and by the evaluation of saved checkpoints (a noisy network's parameters
+have their own names, so the test network must be built the same way).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform
+from crowdrl.exploration.dropout import add_action_dropout
+from crowdrl.exploration.intrinsic import seeded_init
+from crowdrl.exploration.noisy import noisify_head
+from crowdrl.models import make_encoder, make_q_network
+from crowdrl.models.qnet import CrowdQNetwork
+from crowdrl.training.config import RunConfig
+
+ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
+
+
+def make_network(run: RunConfig, num_actions: int = 81) -> CrowdQNetwork:
+    """The Q network of the run's encoder and exploration variant (fresh parameters)."""
+    net = make_q_network(run.encoder.name, num_actions=num_actions)
+    x = run.exploration
+    if x.name == "noisy":
+        noisify_head(net.head, x.sigma0)
+    elif x.name == "dropout":
+        add_action_dropout(net.head, x.dropout_start)
+    return net
+
+
+def make_bonus(run: RunConfig, obs_keys: list[str], num_actions: int = 81) -> IntrinsicBonus | None:
+    """ICM or RE3 on its own encoder of the run's architecture (``None`` for other variants).
+
+    Initialised from a seed derived from the run seed without touching the global RNG, so a
+    ``beta = 0`` run follows the extrinsic-only run bit for bit.
+    """
+    x = run.exploration
+    seed = 1_000_003 * (run.seed + 1)
+    if x.name == "icm":
+        with seeded_init(seed):
+            encoder = make_encoder(run.encoder.name)
+        return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, seed=seed + 1)
+    if x.name == "re3":
+        with seeded_init(seed):
+            encoder = make_encoder(run.encoder.name)
+        return RE3(encoder, obs_keys, k=x.re3_k, seed=seed + 1)
+    return None
+
+
+def make_intrinsic_transform(run: RunConfig, bonus: IntrinsicBonus, obs_keys: list[str],
+                             frames: Callable[[], int]) -> IntrinsicRewardTransform:
+    """The sample-time reward transform; ``frames()`` gives the frame count for a decaying β."""
+    x = run.exploration
+    if x.beta_end is None:
+        beta: float | Callable[[], float] = x.beta
+    else:
+        def beta() -> float:
+            return x.beta_end + (x.beta - x.beta_end) * max(0.0, 1.0 - frames() / x.anneal_frames)
+    next_keys = [("next", k) for k in obs_keys] if run.train.n_step == 1 else [(ONE_STEP_KEY, k) for k in obs_keys]
+    return IntrinsicRewardTransform(bonus, beta, obs_keys=obs_keys, next_obs_keys=next_keys)
+
+
+def uses_one_step_successor(run: RunConfig) -> bool:
+    """Whether the buffer must keep ``s_{t+1}`` next to the n-step successor."""
+    return run.exploration.name in ("icm", "re3") and run.train.n_step > 1
+
+
+__all__ = ["make_network", "make_bonus", "make_intrinsic_transform", "uses_one_step_successor", "ONE_STEP_KEY"]
