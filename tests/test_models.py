@@ -17,6 +17,7 @@ from crowdrl.models import (
     make_q_network,
     register_encoder,
 )
+from crowdrl.models import sgd3qn
 from crowdrl.models.sgd3qn import _PairwiseScore
 
 
@@ -107,7 +108,9 @@ def test_optimised_encoder_equals_naive_float64_with_input_grads():
         torch.testing.assert_close(x, y, atol=1e-11, rtol=1e-10)
 
 
-def test_pairwise_score_matches_autograd():
+@pytest.mark.parametrize("backend", ["eager", "compiled"])
+def test_pairwise_score_matches_autograd(backend, monkeypatch):
+    monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels(backend))
     rows = torch.randn(2, 3, 6, dtype=torch.float64, requires_grad=True)
     cols = torch.randn(2, 5, 6, dtype=torch.float64, requires_grad=True)
     w = torch.randn(6, dtype=torch.float64, requires_grad=True)
@@ -119,14 +122,31 @@ def test_pairwise_score_matches_autograd():
         torch.testing.assert_close(x, y)
 
 
-def test_pairwise_score_second_backward_raises():
-    """The backward reuses the saved tensor in place: a second pass must fail loudly."""
-    rows = torch.randn(2, 3, 4, requires_grad=True)
-    cols = torch.randn(2, 3, 4, requires_grad=True)
-    out = _PairwiseScore.apply(rows, cols, torch.randn(4, requires_grad=True)).sum()
-    out.backward(retain_graph=True)
-    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
-        out.backward()
+def test_compiled_and_eager_pairwise_kernels_agree_on_the_network(monkeypatch):
+    """The whole Q network with compiled kernels == with eager ones (values and gradients), at two batch sizes."""
+    torch.manual_seed(0)
+    net = make_q_network("sgd3qn")
+    results = {}
+    for backend in ("eager", "compiled"):
+        monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels(backend))
+        out = []
+        for batch in (7, 100):
+            torch.manual_seed(batch)
+            robot, humans = _states(batch, n=10)
+            net.zero_grad()
+            q = net(robot, humans)
+            q.square().mean().backward()
+            out.append((q.detach(), [p.grad.clone() for p in net.parameters()]))
+        results[backend] = out
+    for (qe, ge), (qc, gc) in zip(results["eager"], results["compiled"]):
+        torch.testing.assert_close(qc, qe, rtol=1e-5, atol=1e-6)
+        for a, b in zip(gc, ge):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_unknown_pairwise_backend_is_rejected():
+    with pytest.raises(ValueError, match="compiled' or 'eager"):
+        sgd3qn.PairwiseKernels("cuda-graphs")
 
 
 def test_humans_do_not_attend_to_the_robot():
