@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from crowdrl.exploration._surgery import replace_children
 from crowdrl.models.dueling import DuelingHead
 from crowdrl.models.qnet import CrowdQNetwork, make_q_network
 
@@ -87,12 +88,7 @@ def add_action_dropout(head: DuelingHead, p: float = 0.5) -> DuelingHead:
     p = _check_p(p)
     if dropout_layers(head):
         raise ValueError(f"{type(head).__name__} already has action dropout")
-    added = 0
-    for parent in list(head.modules()):
-        for name, child in list(parent.named_children()):
-            if isinstance(child, nn.ReLU):
-                setattr(parent, name, nn.Sequential(child, ScheduledDropout(p)))
-                added += 1
+    added = replace_children(head, lambda m: isinstance(m, nn.ReLU), lambda m: nn.Sequential(m, ScheduledDropout(p)))
     if added == 0:
         raise ValueError(f"{type(head).__name__} has no nn.ReLU after which to put dropout")
     return head

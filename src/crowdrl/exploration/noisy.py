@@ -56,6 +56,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.modules import NoisyLinear
 
+from crowdrl.exploration._surgery import replace_children
 from crowdrl.models.dueling import DuelingHead
 from crowdrl.models.qnet import CrowdQNetwork, make_q_network
 
@@ -95,15 +96,12 @@ def noisify_head(head: DuelingHead, sigma0: float = 0.5) -> DuelingHead:
     """
     if not sigma0 >= 0:
         raise ValueError(f"sigma0 must be >= 0, got sigma0={sigma0}")
-    replaced = 0
-    for parent in list(head.modules()):
-        for name, child in list(parent.named_children()):
-            if type(child) is nn.Linear:
-                w = child.weight
-                setattr(parent, name, FactorisedNoisyLinear(child.in_features, child.out_features,
-                                                            bias=child.bias is not None, sigma0=sigma0,
-                                                            device=w.device, dtype=w.dtype))
-                replaced += 1
+    def noisy(layer: nn.Module) -> nn.Module:
+        w = layer.weight
+        return FactorisedNoisyLinear(layer.in_features, layer.out_features, bias=layer.bias is not None,
+                                     sigma0=sigma0, device=w.device, dtype=w.dtype)
+
+    replaced = replace_children(head, lambda m: type(m) is nn.Linear, noisy)
     if replaced == 0:
         raise ValueError(f"{type(head).__name__} has no plain nn.Linear layer to make noisy (already noisy?)")
     return head
