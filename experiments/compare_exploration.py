@@ -30,11 +30,22 @@ VARIANTS = ("egreedy", "noisy", "dropout", "icm", "re3")
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
 
 
+def _check_overrides(run_dir: Path, overrides: list[str]) -> None:
+    """A run folder is reused only for the overrides it was started with (no mixed budgets)."""
+    stored = run_dir / "compare_overrides.json"
+    if stored.is_file() and json.loads(stored.read_text()) != overrides:
+        raise SystemExit(f"{run_dir} was trained with overrides {json.loads(stored.read_text())}, not {overrides}; "
+                         "use another --out")
+
+
 def run_one(out: Path, variant: str, seed: int, overrides: list[str]) -> Path:
     """Train (or resume, or skip if finished) one run; returns its folder."""
     run_dir = out / f"{variant}-s{seed}"
+    _check_overrides(run_dir, overrides)
     if (run_dir / "eval.json").is_file():
         return run_dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "compare_overrides.json").write_text(json.dumps(overrides))
     cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), f"exploration={variant}", f"seed={seed}",
            "logger.progress_bar=false", *overrides]
     if (run_dir / "checkpoints" / "last.pt").is_file():
@@ -52,9 +63,14 @@ def run_one(out: Path, variant: str, seed: int, overrides: list[str]) -> Path:
 
 
 def summarize(out: Path) -> dict:
-    """Mean ± std over seeds of each variant's test metrics, from the finished runs in ``out``."""
+    """Mean ± std over seeds of each variant's test metrics, from the finished runs in ``out``
+    (all of them trained with the folder's ``overrides.json``; NaN values are reported as null and
+    left out of the mean, ``n`` says how many entered it)."""
     table: dict[str, dict] = {}
+    overrides = json.loads((out / "overrides.json").read_text()) if (out / "overrides.json").is_file() else None
     for eval_file in sorted(out.glob("*-s*/eval.json")):
+        if overrides is not None:
+            _check_overrides(eval_file.parent, overrides)
         variant, seed = eval_file.parent.name.rsplit("-s", 1)
         metrics = json.loads(eval_file.read_text())["metrics"]
         entry = table.setdefault(variant, {"seeds": [], **{m: [] for m in METRICS}})
@@ -68,7 +84,8 @@ def summarize(out: Path) -> dict:
         for m in METRICS:
             values = [v for v in entry[m] if not math.isnan(v)]
             row[m] = {"mean": statistics.fmean(values) if values else math.nan,
-                      "std": statistics.stdev(values) if len(values) > 1 else math.nan, "values": entry[m]}
+                      "std": statistics.stdev(values) if len(values) > 1 else math.nan, "n": len(values),
+                      "values": [None if math.isnan(v) else v for v in entry[m]]}
         summary[variant] = row
     return summary
 
@@ -101,6 +118,8 @@ def main(argv: list[str] | None = None) -> dict:
     out = args.summarize or args.out
     if args.summarize is None:
         out.mkdir(parents=True, exist_ok=True)
+        if (out / "overrides.json").is_file() and json.loads((out / "overrides.json").read_text()) != overrides:
+            p.error(f"{out} holds runs with overrides {json.loads((out / 'overrides.json').read_text())}; use another --out")
         (out / "overrides.json").write_text(json.dumps(overrides))
         jobs = [(v, s) for s in args.seeds for v in args.variants]
         print(f"{len(jobs)} runs, {args.jobs} at a time, overrides {overrides} -> {out}", flush=True)
@@ -110,7 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
     summary = summarize(out)
     if not summary:
         raise SystemExit(f"no finished runs (eval.json) under {out}")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(json.dumps(summary, indent=1).replace("NaN", "null"))
     print(format_summary(summary))
     return summary
 

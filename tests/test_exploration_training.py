@@ -143,3 +143,37 @@ def test_compare_script_trains_skips_finished_runs_and_aggregates(tmp_path, caps
     again = compare_exploration.main(args)  # finished runs are not trained again
     assert again == summary and {p: p.stat().st_mtime_ns for p in tmp_path.glob("*/eval.json")} == mtimes
     assert "egreedy" in capsys.readouterr().out
+
+
+def test_resuming_a_finished_run_trains_no_more_and_restores_the_schedules(tmp_path):
+    """A run killed after training (e.g. during its test) resumes to the test: no extra updates,
+    best.pt untouched, ε and dropout p those of its frame count rather than their start values."""
+    trainer, summary = _run(tmp_path, "dropout", eps_start=0.5, eps_end=0.1)
+    best = tmp_path / "dropout" / "checkpoints" / "best.pt"
+    before = best.stat().st_mtime_ns
+    again = Trainer(trainer.run, tmp_path / "dropout")
+    try:
+        resumed = again.train()
+    finally:
+        again.close()
+    assert (resumed["frames"], resumed["updates"]) == (summary["frames"], summary["updates"])
+    assert best.stat().st_mtime_ns == before
+    assert float(again.egreedy.eps) == pytest.approx(0.1)
+    assert all(m.p == pytest.approx(0.01) for m in dropout_layers(again.net))
+
+
+def test_n_step_longer_than_a_collected_batch_is_rejected():
+    with pytest.raises(ConfigError, match=r"train\.n_step"):
+        validate({"train": {"n_step": 9, "steps_per_batch": 8}})
+    validate({"exploration": {"name": "icm", "re3_k": 500}})  # re3_k only matters for re3
+
+
+def test_compare_script_refuses_to_mix_budgets(tmp_path):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import compare_exploration
+
+    run_dir = tmp_path / "egreedy-s0"
+    run_dir.mkdir()
+    (run_dir / "compare_overrides.json").write_text(json.dumps(["train.total_frames=64"]))
+    with pytest.raises(SystemExit, match="trained with overrides"):
+        compare_exploration.run_one(tmp_path, "egreedy", 0, ["train.total_frames=128"])

@@ -42,6 +42,8 @@ import warnings
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch._dynamo.exc import BackendCompilerFailed
+from torch._inductor.exc import InductorError
 from torch.autograd.function import once_differentiable
 
 from crowdrl.models.registry import register_encoder
@@ -110,7 +112,7 @@ class PairwiseKernels:
     def _run(self, name: str, fn, dynamic: bool | None, *args):
         try:
             return self._get(name, fn, dynamic)(*args)
-        except Exception as exc:  # pragma: no cover - depends on the machine's toolchain
+        except (BackendCompilerFailed, InductorError) as exc:  # pragma: no cover - depends on the toolchain
             if self.backend == "eager":
                 raise
             warnings.warn(f"compiling the pairwise attention kernel failed ({type(exc).__name__}: {exc}); "

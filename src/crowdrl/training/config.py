@@ -136,7 +136,8 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(x.beta >= 0, "exploration.beta", f"must be >= 0, got {x.beta}")
     _check(x.beta_end is None or x.beta_end >= 0, "exploration.beta_end", f"must be >= 0 or null, got {x.beta_end}")
     _check(x.icm_lr > 0, "exploration.icm_lr", f"must be > 0, got {x.icm_lr}")
-    _check(1 <= x.re3_k < run.train.batch_size, "exploration.re3_k",
+    _check(x.re3_k >= 1, "exploration.re3_k", f"must be >= 1, got {x.re3_k}")
+    _check(x.name != "re3" or x.re3_k < run.train.batch_size, "exploration.re3_k",
            f"must lie in 1..train.batch_size-1 ({run.train.batch_size - 1}), got {x.re3_k}")
     _one_of(run.logger.name, "logger.name", LOGGERS)
     _one_of(run.logger.mode, "logger.mode", WANDB_MODES)
@@ -145,6 +146,8 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
         value = getattr(t, key)
         _check(value >= 1, f"train.{key}", f"must be >= 1, got {value}")
     _check(t.warmup_frames >= 0, "train.warmup_frames", f"must be >= 0, got {t.warmup_frames}")
+    _check(t.n_step <= t.steps_per_batch, "train.n_step",
+           f"({t.n_step}) must not exceed train.steps_per_batch ({t.steps_per_batch}): windows end with the batch")
     _check(t.batch_size <= t.buffer_size, "train.batch_size",
            f"({t.batch_size}) must not exceed train.buffer_size ({t.buffer_size})")
     _check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")

@@ -169,6 +169,11 @@ class Trainer:
                                      resume_data.get("wandb_id") if resume_data else None)
         self._write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
         self.env.base_env._next_episode = c.next_train_episode  # a resumed run starts fresh episodes
+        self._set_schedules()  # a resumed run acts with the schedules of its frame count, not their start
+        if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
+            summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
+            self._write_status("trained", **summary)
+            return summary
         frames_per_batch = t.num_envs * t.steps_per_batch
         collector = Collector(self.env, self.policy, frames_per_batch=frames_per_batch, total_frames=-1,
                               device=run.device, auto_register_policy_transforms=False)
@@ -182,7 +187,6 @@ class Trainer:
                 frames = batch.numel()
                 c.frames += frames
                 c.next_train_episode = self.env.base_env._next_episode
-                self._set_schedules()
                 finished = _finished_episodes(batch)
                 c.episodes += len(finished)
                 recent.extend(finished)
@@ -190,6 +194,9 @@ class Trainer:
                 tick = time.perf_counter()
                 loss_value = self._update(frames)
                 timers["update"] += time.perf_counter() - tick
+                self._set_schedules()
+                if run.exploration.name == "noisy":
+                    reset_noise(self.net)  # a fresh noise sample for the next batch's actions
                 if c.frames - c.last_val >= t.val_every_frames or c.frames >= t.total_frames:
                     tick = time.perf_counter()
                     self._validate()
@@ -211,26 +218,33 @@ class Trainer:
             collector.shutdown()
             if bar is not None:
                 bar.close()
-        summary = {"frames": c.frames, "updates": c.updates, "episodes": c.episodes, "best_val_score": c.best_val,  # success + 1e-3 * return
-                   "best_frames": c.best_frames, "timers_s": timers}
+        summary = self._summary(timers)
         self._write_status("trained", **summary)
         return summary
 
+    def _summary(self, timers: dict) -> dict[str, Any]:
+        c = self.counters
+        return {"frames": c.frames, "updates": c.updates, "episodes": c.episodes,
+                "best_val_score": c.best_val,  # validation success + 1e-3 * return
+                "best_frames": c.best_frames, "timers_s": timers}
+
     def _set_schedules(self) -> None:
-        """Per collected batch: ε, the dropout p, a fresh noise sample for the next batch's actions."""
+        """ε and the dropout p for the frame count reached (before each collected batch)."""
         x, frames = self.run.exploration, self.counters.frames
         self.egreedy.eps.fill_(linear_schedule(x.eps_start, x.eps_end, x.anneal_frames, frames))
         if x.name == "dropout":
             set_dropout_p(self.net, linear_schedule(x.dropout_start, x.dropout_end, x.anneal_frames, frames))
-        elif x.name == "noisy":
-            reset_noise(self.net)
 
     def _update(self, frames: int) -> float:
         t, c = self.run.train, self.counters
         c.update_credit += frames * t.updates_per_frame
         n = int(c.update_credit)
         c.update_credit -= n
-        if c.frames < t.warmup_frames or len(self.buffer) < t.batch_size:
+        if c.frames < t.warmup_frames:  # warm-up of a fresh run: no updates owed
+            return math.nan
+        if len(self.buffer) < max(t.batch_size, min(t.warmup_frames, t.buffer_size)):
+            # a run resumed without its buffer refills it first; the updates stay owed
+            c.update_credit += n
             return math.nan
         total = 0.0
         for _ in range(n):

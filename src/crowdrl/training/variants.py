@@ -4,7 +4,10 @@
 * ``noisy``: every head layer a factorised NoisyLinear (σ0), ε = 0.
 * ``dropout``: dropout after each hidden ReLU of the head while acting, p scheduled, ε = 0.
 * ``icm`` / ``re3``: the plain network plus an intrinsic bonus computed at sample time by an
-  :class:`~crowdrl.exploration.IntrinsicRewardTransform` in the replay buffer, ε = 0.
+  :class:`~crowdrl.exploration.IntrinsicRewardTransform` in the replay buffer, ε = 0. With
+  n-step returns (n > 1) the bonus is that of the window's first transition
+  ``(s_t, a_t, s_{t+1})`` added to the n-step extrinsic return: the later steps' bonuses would
+  need their own states at sample time. The paper's setting is n = 1, where this is exact.
 
 Shared by the trainer and by the evaluation of saved checkpoints (a noisy network's parameters
 have their own names, so the test network must be built the same way).
