@@ -23,7 +23,7 @@ from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.exploration.noisy import noisify_head
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
-from crowdrl.training.config import RunConfig
+from crowdrl.training.config import INTRINSIC, RunConfig
 
 ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
 
@@ -46,16 +46,14 @@ def make_bonus(run: RunConfig, obs_keys: list[str], num_actions: int = 81) -> In
     ``beta = 0`` run follows the extrinsic-only run bit for bit.
     """
     x = run.exploration
+    if x.name not in INTRINSIC:
+        return None
     seed = 1_000_003 * (run.seed + 1)
+    with seeded_init(seed):
+        encoder = make_encoder(run.encoder.name)
     if x.name == "icm":
-        with seeded_init(seed):
-            encoder = make_encoder(run.encoder.name)
         return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, seed=seed + 1)
-    if x.name == "re3":
-        with seeded_init(seed):
-            encoder = make_encoder(run.encoder.name)
-        return RE3(encoder, obs_keys, k=x.re3_k, seed=seed + 1)
-    return None
+    return RE3(encoder, obs_keys, k=x.re3_k, seed=seed + 1)
 
 
 def make_intrinsic_transform(run: RunConfig, bonus: IntrinsicBonus, obs_keys: list[str],
@@ -73,7 +71,7 @@ def make_intrinsic_transform(run: RunConfig, bonus: IntrinsicBonus, obs_keys: li
 
 def uses_one_step_successor(run: RunConfig) -> bool:
     """Whether the buffer must keep ``s_{t+1}`` next to the n-step successor."""
-    return run.exploration.name in ("icm", "re3") and run.train.n_step > 1
+    return run.exploration.name in INTRINSIC and run.train.n_step > 1
 
 
 __all__ = ["make_network", "make_bonus", "make_intrinsic_transform", "uses_one_step_successor", "ONE_STEP_KEY"]
