@@ -3,13 +3,16 @@
     python experiments/bench_train.py                            # SG-D3QN, ε-greedy, batch 100, 16 envs
     python experiments/bench_train.py --threads 2 --json
     python experiments/bench_train.py --explorations egreedy noisy dropout icm re3   # overhead ratios
+    python experiments/bench_train.py --loss eager compiled      # what compiling the loss buys
 
 Measures, in one process: collecting frames with the acting policy through the TorchRL
 collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
 includes the sample-time intrinsic reward and ICM's own training step), the double-DQN loss
 (forward passes), backward, and the optimiser step. Projects the paper's budget (500k frames,
 500k updates of batch 100) from the measured rates. With several explorations, each variant's
-update cost is also given relative to the first one, all measured in the same process.
+update cost is also given relative to the first one, all measured in the same process; the
+same for ``--loss eager compiled`` (the Q networks inside the loss run eagerly or through
+``torch.compile``, ``train.compile_loss``; compilation happens in the untimed warm-up).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import torch
 BUDGET_FRAMES = BUDGET_UPDATES = 500_000
 
 
-def measure(exploration: str, args: argparse.Namespace) -> dict:
+def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> dict:
     """Collection rate and per-update breakdown (ms) for one exploration variant."""
     from torchrl.collectors import Collector
 
@@ -34,7 +37,8 @@ def measure(exploration: str, args: argparse.Namespace) -> dict:
 
     torch.manual_seed(0)
     run = validate({"logger": {"name": "csv"}, "encoder": {"name": args.encoder}, "exploration": {"name": exploration},
-                    "threads": args.threads, "train": {"num_envs": args.num_envs, "steps_per_batch": 8}})
+                    "threads": args.threads, "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
+                                                      "compile_loss": loss_backend == "compiled"}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
     torch.set_num_threads(args.threads)
     collector = Collector(tr.env, tr.policy, frames_per_batch=args.num_envs * 8, total_frames=-1,
@@ -79,7 +83,7 @@ def measure(exploration: str, args: argparse.Namespace) -> dict:
     update_ms = sum(ms.values())
     frames_per_s = collected / collect_s
     hours = (BUDGET_FRAMES / frames_per_s + BUDGET_UPDATES * update_ms / 1e3) / 3600
-    return {"exploration": exploration, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
+    return {"exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours}
 
 
@@ -92,12 +96,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--encoder", default="sgd3qn")
     p.add_argument("--explorations", nargs="+", default=["egreedy"],
                    choices=["egreedy", "noisy", "dropout", "icm", "re3"])
+    p.add_argument("--loss", nargs="+", default=["compiled"], choices=["compiled", "eager"],
+                   help="run the loss's Q networks compiled (default) and/or eagerly")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
         p.error("all counts must be >= 1")
     torch.set_num_threads(args.threads)
-    results = [measure(x, args) for x in args.explorations]
+    results = [measure(x, backend, args) for x in args.explorations for backend in args.loss]
     base = results[0]["update_ms"]
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
@@ -108,9 +114,9 @@ def main(argv: list[str] | None = None) -> dict:
         return out
     print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}, batch 100")
     for r in results:
-        print(f"\n[{r['exploration']}] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
+        print(f"\n[{r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
         print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "
-              f"({r['update_cost_vs_first']:.2f}x {results[0]['exploration']})")
+              f"({r['update_cost_vs_first']:.2f}x {results[0]['exploration']}, {results[0]['loss']} loss)")
         for k, v in r["update_breakdown_ms"].items():
             print(f"    {k:<13} {v:6.2f} ms  ({100 * v / r['update_ms']:4.1f}%)")
         print(f"  paper budget (500k frames + 500k updates): {r['paper_budget_hours']:.2f} h projected")

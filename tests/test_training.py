@@ -113,6 +113,49 @@ def test_d3qn_loss_equals_torchrl_double_dqn_loss():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.parametrize("head", ["plain", "noisy", "dropout"])
+def test_compiled_loss_equals_eager_and_compiles_once(head, monkeypatch):
+    """``compile=True`` gives the eager loss and gradients, for every head variant, and a
+    changing dropout p or fresh noise between batches does not trigger recompilation."""
+    import crowdrl.models.sgd3qn as sgd3qn
+    from crowdrl.exploration.dropout import make_dropout_q_network, set_dropout_p
+    from crowdrl.exploration.noisy import make_noisy_q_network, reset_noise
+    from crowdrl.models import make_q_network
+
+    monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels("eager"))  # only the loss compiles here
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    g = 0.9
+    _, _, trans = _nstep_rollout(g)
+    torch.manual_seed(1)
+    net = {"plain": make_q_network, "noisy": make_noisy_q_network, "dropout": make_dropout_q_network}[head]("sgd3qn")
+    eager = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=g)
+    compiled = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=g, compile=True)
+    compiled.target_net.load_state_dict(eager.target_net.state_dict())
+    counters = torch._dynamo.utils.counters
+    for step in range(3):
+        if head == "noisy":
+            reset_noise(net)
+            reset_noise(eager.target_net)
+            compiled.target_net.load_state_dict(eager.target_net.state_dict())
+        if head == "dropout":
+            set_dropout_p(net, 0.5 - 0.1 * step)
+        results = []
+        for loss in (eager, compiled):
+            net.zero_grad()
+            value = loss(trans.clone())["loss"]
+            value.backward()
+            results.append((value.detach(), [p.grad.clone() for p in net.parameters()]))
+        torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-5, atol=1e-6)
+        for a, b in zip(results[0][1], results[1][1]):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+        if step == 0:
+            graphs = counters["stats"]["unique_graphs"]
+    # one graph per (network, grad mode): online with grad, online no-grad, target; none added later
+    assert graphs == 3 and counters["stats"]["unique_graphs"] == 3, dict(counters["stats"])
+    assert not counters["graph_break"], dict(counters["graph_break"])
+
+
 def test_d3qn_loss_rejects_out_of_range_actions():
     g = 0.9
     _, actor, trans = _nstep_rollout(g)

@@ -63,11 +63,11 @@ class ScheduledDropout(nn.Module):
         self.acting: bool | None = None
 
     def is_active(self) -> bool:
-        if self.p == 0.0 or not self.training:
+        if not self.training:
             return False
-        if self.acting is None:
-            return exploration_type() is ExplorationType.RANDOM
-        return self.acting
+        acting = exploration_type() is ExplorationType.RANDOM if self.acting is None else self.acting
+        # p is read last: a compiled loss (never acting) then does not specialise on a p that changes every batch
+        return acting and self.p > 0.0
 
     def forward(self, x: Tensor) -> Tensor:
         return F.dropout(x, self.p, training=True) if self.is_active() else x

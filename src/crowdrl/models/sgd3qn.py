@@ -148,13 +148,16 @@ class _PairwiseScore(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
         ctx.save_for_backward(rows, cols, w)
+        if torch.compiler.is_compiling():  # inside a compiled network: let the outer graph fuse it
+            return _score_forward(rows, cols, w)
         return PAIRWISE.forward(rows, cols, w)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
         rows, cols, w = ctx.saved_tensors
-        grad_rows, grad_cols, grad_w = PAIRWISE.backward(rows, cols, w, grad.contiguous())
+        kernel = _score_backward if torch.compiler.is_compiling() else PAIRWISE.backward
+        grad_rows, grad_cols, grad_w = kernel(rows, cols, w, grad.contiguous())
         need_rows, need_cols, need_w = ctx.needs_input_grad
         return (grad_rows if need_rows else None, grad_cols if need_cols else None, grad_w if need_w else None)
 
@@ -217,7 +220,6 @@ class SGD3QNEncoder(nn.Module):
         self.w_h = _mlp(human_dim, hidden_dim, embedding_dim)
         self.gat0 = GraphAttentionLayer(embedding_dim)
         self.gat1 = GraphAttentionLayer(embedding_dim)
-        self._mask_cache: dict[tuple[int, torch.device], Tensor] = {}
 
     def _check(self, robot_rc: Tensor, humans_rc: Tensor) -> tuple[torch.Size, int]:
         if robot_rc.shape[-1:] != (self.robot_dim,):
@@ -238,16 +240,11 @@ class SGD3QNEncoder(nn.Module):
         humans = self.w_h(humans_rc.reshape(-1, n, self.human_dim))
         return torch.cat((robot, humans), dim=1)
 
-    def _mask(self, num_nodes: int, device: torch.device) -> Tensor:
-        key = (num_nodes, device)
-        mask = self._mask_cache.get(key)
-        if mask is None:
-            mask = self._mask_cache[key] = human_mask(num_nodes, device)
-        return mask
-
     def first_layer(self, x: Tensor) -> Tensor:
         """``H1 = gat0(X)`` for every node, ``[B, N+1, D]``."""
-        return _attend(self.gat0, x, x, self._mask(x.shape[-2], x.device))
+        # built per call (two tiny ops; a constant inside a compiled graph): a cache would be a side
+        # effect that makes torch.compile recompile
+        return _attend(self.gat0, x, x, human_mask(x.shape[-2], x.device))
 
     def forward(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
         lead, _ = self._check(robot_rc, humans_rc)

@@ -11,16 +11,24 @@ transition's ``steps_to_next_obs`` (1 when absent). ``DQNLoss`` swaps the target
 the online module and routes every pass through tensordict modules, which costs about a third
 of an update on CPU at batch 100; here the target network is a plain frozen copy, refreshed by
 :meth:`D3QNLoss.update_target`.
+
+``compile=True`` runs both networks' forwards through ``torch.compile`` (inductor fuses the
+encoder's ~40 small ops per pass and their backward): about 25 % off an update at batch 100 on
+CPU, for ~10 s of compilation on first use (cached on disk by inductor). It falls back to eager
+with a warning if compilation fails (no C++ compiler).
 """
 
 from __future__ import annotations
 
 import copy
-from typing import Sequence
+import warnings
+from typing import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
+from torch._dynamo.exc import BackendCompilerFailed
+from torch._inductor.exc import InductorError
 from torchrl.objectives import LossModule
 
 
@@ -30,9 +38,11 @@ class D3QNLoss(LossModule):
     ``obs_keys`` name the network's inputs in the sampled tensordict (and under ``"next"``);
     ``"action"`` is an integer index (``[batch]`` or ``[batch, 1]``) or a one-hot ``[batch,
     num_actions]``. ``double=False`` bootstraps with ``max_a Q_target(s', a)`` instead.
+    ``compile=True`` compiles the two networks' forwards (see the module docstring).
     """
 
-    def __init__(self, net: nn.Module, obs_keys: Sequence[str], gamma: float, double: bool = True) -> None:
+    def __init__(self, net: nn.Module, obs_keys: Sequence[str], gamma: float, double: bool = True,
+                 compile: bool = False) -> None:
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         if not obs_keys:
@@ -43,6 +53,8 @@ class D3QNLoss(LossModule):
         self.obs_keys = list(obs_keys)
         self.gamma = float(gamma)
         self.double = bool(double)
+        self.compile = bool(compile)
+        self._forwards: tuple[Callable, Callable] | None = None  # (online, target), built on first use
 
     @property
     def in_keys(self) -> list:
@@ -61,6 +73,22 @@ class D3QNLoss(LossModule):
         for dst, src in zip(self.target_net.buffers(), self.net.buffers()):
             dst.copy_(src)
 
+    def _q(self, which: int, obs: list[Tensor]) -> Tensor:
+        """Q values of the online (``which=0``) or target (``1``) network, compiled if asked."""
+        if self._forwards is None:
+            nets = (self.net, self.target_net)
+            # compiled bound methods: the modules stay the loss's only registered children
+            self._forwards = tuple(torch.compile(n.forward, dynamic=False) for n in nets) if self.compile else nets
+        try:
+            return self._forwards[which](*obs)
+        except (BackendCompilerFailed, InductorError) as exc:  # pragma: no cover - depends on the toolchain
+            if not self.compile:
+                raise
+            warnings.warn(f"compiling the Q network failed ({type(exc).__name__}: {exc}); using eager torch",
+                          RuntimeWarning)
+            self.compile, self._forwards = False, None
+            return self._q(which, obs)
+
     def _obs(self, td: TensorDictBase, prefix: tuple = ()) -> list[Tensor]:
         out = []
         for key in self.obs_keys:
@@ -75,9 +103,9 @@ class D3QNLoss(LossModule):
     def target(self, td: TensorDictBase) -> Tensor:
         """The bootstrapped target ``y`` ``[batch]`` (no gradient)."""
         nxt = self._obs(td, ("next",))
-        q_target = self.target_net(*nxt)
+        q_target = self._q(1, nxt)
         if self.double:
-            best = self.net(*nxt).argmax(-1, keepdim=True)
+            best = self._q(0, nxt).argmax(-1, keepdim=True)
             boot = q_target.gather(-1, best).squeeze(-1)
         else:
             boot = q_target.amax(-1)
@@ -89,7 +117,7 @@ class D3QNLoss(LossModule):
 
     def chosen_q(self, td: TensorDictBase) -> Tensor:
         """``Q(s, a)`` ``[batch]`` for the stored actions, with gradient."""
-        q = self.net(*self._obs(td))
+        q = self._q(0, self._obs(td))
         action = td.get("action")
         if action.dtype == torch.bool or (action.dim() == q.dim() and action.shape[-1] == q.shape[-1] and q.shape[-1] > 1):
             index = action.to(torch.int64).argmax(-1, keepdim=True)  # one-hot

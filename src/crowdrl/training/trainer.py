@@ -95,7 +95,7 @@ class Trainer:
         self.egreedy = EGreedyModule(base.action_spec, eps_init=run.exploration.eps_start,
                                      eps_end=run.exploration.eps_end, annealing_num_steps=run.exploration.anneal_frames)
         self.policy = TensorDictSequential(self.actor, self.egreedy)
-        self.loss = D3QNLoss(self.net, OBS_KEYS, gamma=t.gamma, double=True)
+        self.loss = D3QNLoss(self.net, OBS_KEYS, gamma=t.gamma, double=True, compile=t.compile_loss)
         # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
         self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
         # fused Adam: one kernel for all parameters (~4x cheaper than the per-tensor loop on CPU)
