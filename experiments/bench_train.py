@@ -45,7 +45,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
                           auto_register_policy_transforms=False)
     frames = 0
     it = iter(collector)
-    while frames < 5000:  # fill the buffer, warm up
+    while frames < args.warmup_frames:  # fill the buffer, warm up
         batch = next(it)
         tr.buffer.extend(batch.select(*STORED_KEYS))
         frames += batch.numel()
@@ -93,6 +93,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--num-envs", type=int, default=16)
     p.add_argument("--updates", type=int, default=300, help="timed updates (default 300)")
     p.add_argument("--batches", type=int, default=20, help="timed collector batches (default 20)")
+    p.add_argument("--warmup-frames", type=int, default=5000, help="frames collected before timing (default 5000)")
     p.add_argument("--encoder", default="sgd3qn")
     p.add_argument("--explorations", nargs="+", default=["egreedy"],
                    choices=["egreedy", "noisy", "dropout", "icm", "re3"])
@@ -102,6 +103,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
         p.error("all counts must be >= 1")
+    if args.warmup_frames < 100:
+        p.error("--warmup-frames must be >= 100 (one batch of 100 is sampled from the buffer)")
     torch.set_num_threads(args.threads)
     results = [measure(x, backend, args) for x in args.explorations for backend in args.loss]
     base = results[0]["update_ms"]

@@ -287,3 +287,18 @@ def test_multirun_two_seeds(tmp_path):
     statuses = sorted(tmp_path.glob("*/status.json"))
     assert len(statuses) == 2
     assert all(json.loads(p.read_text())["state"] == "completed" for p in statuses)
+
+
+def test_bench_train_reports_rates_and_ratios(capsys):
+    """`experiments/bench_train.py` runs on a tiny budget and reports consistent figures."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import bench_train
+
+    out = bench_train.main(["--updates", "2", "--batches", "1", "--num-envs", "4", "--warmup-frames", "128", "--loss", "eager", "eager", "--json"])
+    first, second = out["results"]
+    for r in (first, second):
+        assert r["loss"] == "eager" and r["collect_frames_per_s"] > 0 and r["update_ms"] > 0
+        assert r["update_ms"] == pytest.approx(sum(r["update_breakdown_ms"].values()))
+        assert r["paper_budget_hours"] > 500_000 * r["update_ms"] / 1e3 / 3600
+    assert first["update_cost_vs_first"] == 1.0
+    assert second["update_cost_vs_first"] == pytest.approx(second["update_ms"] / first["update_ms"])
