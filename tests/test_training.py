@@ -90,6 +90,19 @@ def test_nstep_target_in_d3qn_loss_matches_hand_computation():
         assert torch.equal(a, b)
 
 
+def _assert_same_loss_and_grads(losses, net, trans, rtol: float, atol: float, grad_rtol: float) -> None:
+    """Both losses give the same value on ``trans`` and the same gradients on ``net``'s parameters."""
+    results = []
+    for loss in losses:
+        net.zero_grad()
+        value = loss(trans.clone())["loss"]
+        value.backward()
+        results.append((value.detach(), [p.grad.clone() for p in net.parameters()]))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=rtol, atol=atol)
+    for a, b in zip(results[0][1], results[1][1]):
+        torch.testing.assert_close(a, b, rtol=grad_rtol, atol=atol)
+
+
 def test_d3qn_loss_equals_torchrl_double_dqn_loss():
     """Our loss is torchrl's DQNLoss(double, delayed, l2) with n-step discounts: same value and gradients."""
     g = 0.9
@@ -102,15 +115,7 @@ def test_d3qn_loss_equals_torchrl_double_dqn_loss():
         for p_ref, p_ours in zip(ref.target_value_network_params.values(True, True), ours.target_net.parameters()):
             p_ref.add_(0.01 * torch.randn_like(p_ref))
             p_ours.copy_(p_ref)
-    grads = []
-    for loss in (ref, ours):
-        net.zero_grad()
-        value = loss(trans.clone())["loss"]
-        value.backward()
-        grads.append((value.detach(), [p.grad.clone() for p in net.parameters()]))
-    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-6, atol=1e-7)
-    for a, b in zip(grads[0][1], grads[1][1]):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    _assert_same_loss_and_grads((ref, ours), net, trans, rtol=1e-6, atol=1e-7, grad_rtol=1e-5)
 
 
 @pytest.mark.parametrize("head", ["plain", "noisy", "dropout"])
@@ -140,15 +145,7 @@ def test_compiled_loss_equals_eager_and_compiles_once(head, monkeypatch):
             compiled.target_net.load_state_dict(eager.target_net.state_dict())
         if head == "dropout":
             set_dropout_p(net, 0.5 - 0.1 * step)
-        results = []
-        for loss in (eager, compiled):
-            net.zero_grad()
-            value = loss(trans.clone())["loss"]
-            value.backward()
-            results.append((value.detach(), [p.grad.clone() for p in net.parameters()]))
-        torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-5, atol=1e-6)
-        for a, b in zip(results[0][1], results[1][1]):
-            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+        _assert_same_loss_and_grads((eager, compiled), net, trans, rtol=1e-5, atol=1e-6, grad_rtol=1e-4)
         if step == 0:
             graphs = counters["stats"]["unique_graphs"]
     # one graph per (network, grad mode): online with grad, online no-grad, target; none added later

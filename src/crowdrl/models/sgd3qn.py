@@ -37,15 +37,13 @@ Optimisations (the function is the same as :class:`SGD3QNEncoderNaive`'s, which 
 from __future__ import annotations
 
 import os
-import warnings
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torch._dynamo.exc import BackendCompilerFailed
-from torch._inductor.exc import InductorError
 from torch.autograd.function import once_differentiable
 
+from crowdrl.models.lazy_compile import LazyCompiled
 from crowdrl.models.registry import register_encoder
 
 ROBOT_RC_DIM = 9
@@ -87,11 +85,12 @@ class PairwiseKernels:
     Eager torch materialises the ``[B, R, C, 64]`` pre-activation several times per pass (add,
     ReLU, product, reduction, and as many again in the backward); inductor fuses each pass into
     one loop nest that never writes it to memory: about 3x faster forward and backward on CPU
-    at batch 100. Compiled lazily on first use (~15 s cold, cached by inductor on disk); the
+    at batch 100. Compiled lazily on first use (cached by inductor on disk); the
     forward specialises to its first shape and then compiles one dynamic-shape version, the
-    backward specialises to every shape it sees (training uses one or two). ``backend="eager"`` (or ``CROWDRL_PAIRWISE=eager``) uses the same
-    functions uncompiled; if compilation fails (no C++ compiler), it falls back to eager with a
-    warning. Both compute the same function; tests compare them.
+    backward specialises to every shape it sees (training uses one or two). ``backend="eager"``
+    (or ``CROWDRL_PAIRWISE=eager``) uses the same functions uncompiled; if compilation fails (no
+    C++ compiler), it falls back to eager with a warning; inside a compiled network the outer
+    graph traces them (:class:`LazyCompiled`). Both compute the same function; tests compare them.
     """
 
     def __init__(self, backend: str | None = None) -> None:
@@ -99,33 +98,12 @@ class PairwiseKernels:
         if backend not in ("compiled", "eager"):
             raise ValueError(f"pairwise backend must be 'compiled' or 'eager', got {backend!r}")
         self.backend = backend
-        self._compiled: dict[str, object] = {}
-
-    def _get(self, name: str, fn, dynamic: bool | None):
-        if self.backend == "eager":
-            return fn
-        compiled = self._compiled.get(name)
-        if compiled is None:
-            compiled = self._compiled[name] = torch.compile(fn, dynamic=dynamic)
-        return compiled
-
-    def _run(self, name: str, fn, dynamic: bool | None, *args):
-        try:
-            return self._get(name, fn, dynamic)(*args)
-        except (BackendCompilerFailed, InductorError) as exc:  # pragma: no cover - depends on the toolchain
-            if self.backend == "eager":
-                raise
-            warnings.warn(f"compiling the pairwise attention kernel failed ({type(exc).__name__}: {exc}); "
-                          "using eager torch (set CROWDRL_PAIRWISE=eager to silence)", RuntimeWarning)
-            self.backend = "eager"
-            return fn(*args)
-
-    def forward(self, rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
-        return self._run("forward", _score_forward, None, rows, cols, w)
-
-    def backward(self, rows: Tensor, cols: Tensor, w: Tensor, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        compiled, hint = backend == "compiled", "set CROWDRL_PAIRWISE=eager to silence"
+        self.forward = LazyCompiled(_score_forward, dynamic=None, what="the pairwise attention kernel",
+                                    hint=hint, enabled=compiled)
         # static shapes: the dynamic-shape backward kernel is ~2.5x slower, and training sees few shapes
-        return self._run("backward", _score_backward, False, rows, cols, w, grad)
+        self.backward = LazyCompiled(_score_backward, dynamic=False, what="the pairwise attention kernel",
+                                     hint=hint, enabled=compiled)
 
 
 PAIRWISE = PairwiseKernels()
@@ -148,16 +126,13 @@ class _PairwiseScore(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
         ctx.save_for_backward(rows, cols, w)
-        if torch.compiler.is_compiling():  # inside a compiled network: let the outer graph fuse it
-            return _score_forward(rows, cols, w)
         return PAIRWISE.forward(rows, cols, w)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
         rows, cols, w = ctx.saved_tensors
-        kernel = _score_backward if torch.compiler.is_compiling() else PAIRWISE.backward
-        grad_rows, grad_cols, grad_w = kernel(rows, cols, w, grad.contiguous())
+        grad_rows, grad_cols, grad_w = PAIRWISE.backward(rows, cols, w, grad.contiguous())
         need_rows, need_cols, need_w = ctx.needs_input_grad
         return (grad_rows if need_rows else None, grad_cols if need_cols else None, grad_w if need_w else None)
 

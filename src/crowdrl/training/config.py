@@ -86,7 +86,7 @@ class TrainConfig:
     checkpoint_every_frames: int = 25_000
     save_buffer: bool = False
     test_episodes: int = 1000
-    compile_loss: bool = True  # torch.compile the Q networks inside the loss (~25 % faster updates on CPU)
+    compile_loss: bool = True  # torch.compile the Q networks inside the loss (faster updates; bench_train.py --loss)
 
 
 @dataclass

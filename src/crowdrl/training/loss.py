@@ -13,23 +13,22 @@ of an update on CPU at batch 100; here the target network is a plain frozen copy
 :meth:`D3QNLoss.update_target`.
 
 ``compile=True`` runs both networks' forwards through ``torch.compile`` (inductor fuses the
-encoder's ~40 small ops per pass and their backward): about 25 % off an update at batch 100 on
-CPU, for ~10 s of compilation on first use (cached on disk by inductor). It falls back to eager
-with a warning if compilation fails (no C++ compiler).
+encoder's small ops per pass and their backward; ``experiments/bench_train.py --loss eager
+compiled`` measures the gain), compiled on first use and cached on disk by inductor. It falls
+back to eager with a warning if compilation fails (no C++ compiler).
 """
 
 from __future__ import annotations
 
 import copy
-import warnings
-from typing import Callable, Sequence
+from typing import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
-from torch._dynamo.exc import BackendCompilerFailed
-from torch._inductor.exc import InductorError
 from torchrl.objectives import LossModule
+
+from crowdrl.models.lazy_compile import LazyCompiled
 
 
 class D3QNLoss(LossModule):
@@ -54,7 +53,9 @@ class D3QNLoss(LossModule):
         self.gamma = float(gamma)
         self.double = bool(double)
         self.compile = bool(compile)
-        self._forwards: tuple[Callable, Callable] | None = None  # (online, target), built on first use
+        # (online, target) forwards; compiled bound methods keep the modules the only registered children
+        self._forwards = tuple(LazyCompiled(n.forward, dynamic=False, what="the Q network", enabled=self.compile)
+                               for n in (self.net, self.target_net))
 
     @property
     def in_keys(self) -> list:
@@ -75,19 +76,7 @@ class D3QNLoss(LossModule):
 
     def _q(self, which: int, obs: list[Tensor]) -> Tensor:
         """Q values of the online (``which=0``) or target (``1``) network, compiled if asked."""
-        if self._forwards is None:
-            nets = (self.net, self.target_net)
-            # compiled bound methods: the modules stay the loss's only registered children
-            self._forwards = tuple(torch.compile(n.forward, dynamic=False) for n in nets) if self.compile else nets
-        try:
-            return self._forwards[which](*obs)
-        except (BackendCompilerFailed, InductorError) as exc:  # pragma: no cover - depends on the toolchain
-            if not self.compile:
-                raise
-            warnings.warn(f"compiling the Q network failed ({type(exc).__name__}: {exc}); using eager torch",
-                          RuntimeWarning)
-            self.compile, self._forwards = False, None
-            return self._q(which, obs)
+        return self._forwards[which](*obs)
 
     def _obs(self, td: TensorDictBase, prefix: tuple = ()) -> list[Tensor]:
         out = []

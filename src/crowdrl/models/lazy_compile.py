@@ -1,0 +1,45 @@
+"""A function compiled by ``torch.compile`` on first call, with an eager fallback."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, Callable
+
+import torch
+from torch._dynamo.exc import BackendCompilerFailed
+from torch._inductor.exc import InductorError
+
+
+class LazyCompiled:
+    """Calls ``fn`` through ``torch.compile(fn, dynamic=dynamic)``, compiled on first use.
+
+    Falls back to plain ``fn`` (warning once, naming ``what`` and ``hint``) if compilation
+    fails, e.g. on a machine without a C++ compiler. Inside an outer compiled region it calls
+    ``fn`` directly, so the outer graph traces and fuses it instead of nesting a compilation.
+    ``enabled=False`` always runs ``fn`` eagerly.
+    """
+
+    def __init__(self, fn: Callable, *, dynamic: bool | None, what: str, hint: str = "",
+                 enabled: bool = True) -> None:
+        self.fn = fn
+        self.dynamic = dynamic
+        self.what = what
+        self.hint = hint
+        self.enabled = bool(enabled)
+        self._compiled: Callable | None = None
+
+    def __call__(self, *args: Any) -> Any:
+        if not self.enabled or torch.compiler.is_compiling():
+            return self.fn(*args)
+        if self._compiled is None:
+            self._compiled = torch.compile(self.fn, dynamic=self.dynamic)
+        try:
+            return self._compiled(*args)
+        except (BackendCompilerFailed, InductorError) as exc:  # pragma: no cover - depends on the toolchain
+            warnings.warn(f"compiling {self.what} failed ({type(exc).__name__}: {exc}); using eager torch"
+                          + (f" ({self.hint})" if self.hint else ""), RuntimeWarning)
+            self.enabled = False
+            return self.fn(*args)
+
+
+__all__ = ["LazyCompiled"]
