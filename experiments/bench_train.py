@@ -28,6 +28,18 @@ import torch
 BUDGET_FRAMES = BUDGET_UPDATES = 500_000
 
 
+def matmul_mflop_per_update(tr) -> float:
+    """Matmul MFLOP of one update's loss forward + backward (``torch.utils.flop_counter``; the
+    optimiser is not a matmul and elementwise ops are not counted): the work the update's time buys."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    sample = tr.buffer.sample()
+    with FlopCounterMode(display=False) as counter:
+        tr.loss(sample)["loss"].backward()
+    tr.optimizer.zero_grad(set_to_none=True)
+    return counter.get_total_flops() / 1e6
+
+
 def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> dict:
     """Collection rate and per-update breakdown (ms) for one exploration variant."""
     from torchrl.collectors import Collector
@@ -56,6 +68,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
     collect_s = time.perf_counter() - start
     collector.shutdown()
 
+    mflop = matmul_mflop_per_update(tr)
     parts: dict[str, list[float]] = {"sample": [], "loss_forward": [], "backward": [], "optimizer": []}
     for i in range(args.updates + 20):
         t0 = time.perf_counter()
@@ -82,9 +95,14 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
     ms = {k: 1e3 * statistics.mean(v) for k, v in parts.items()}
     update_ms = sum(ms.values())
     frames_per_s = collected / collect_s
-    hours = (BUDGET_FRAMES / frames_per_s + BUDGET_UPDATES * update_ms / 1e3) / 3600
+    collect_h = BUDGET_FRAMES / frames_per_s / 3600
+    hours = collect_h + BUDGET_UPDATES * update_ms / 1e3 / 3600
+    # what one update may cost for collection + updates to fit in one hour at this collection rate
+    update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
     return {"exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
-            "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours}
+            "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
+            "matmul_mflop_per_update": mflop, "matmul_gflop_per_s": mflop / update_ms,
+            "update_ms_for_1h_budget": update_ms_for_1h}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -122,7 +140,11 @@ def main(argv: list[str] | None = None) -> dict:
               f"({r['update_cost_vs_first']:.2f}x {results[0]['exploration']}, {results[0]['loss']} loss)")
         for k, v in r["update_breakdown_ms"].items():
             print(f"    {k:<13} {v:6.2f} ms  ({100 * v / r['update_ms']:4.1f}%)")
-        print(f"  paper budget (500k frames + 500k updates): {r['paper_budget_hours']:.2f} h projected")
+        print(f"  matmul work: {r['matmul_mflop_per_update']:.1f} MFLOP per update (forward + backward), "
+              f"{r['matmul_gflop_per_s']:.1f} GFLOP/s achieved")
+        print(f"  paper budget (500k frames + 500k updates): {r['paper_budget_hours']:.2f} h projected; "
+              f"1 h needs <= {r['update_ms_for_1h_budget']:.2f} ms per update "
+              f"({r['matmul_mflop_per_update'] / max(r['update_ms_for_1h_budget'], 1e-9):.0f} GFLOP/s)")
     return out
 
 

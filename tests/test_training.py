@@ -299,3 +299,11 @@ def test_bench_train_reports_rates_and_ratios(capsys):
         assert r["paper_budget_hours"] > 500_000 * r["update_ms"] / 1e3 / 3600
     assert first["update_cost_vs_first"] == 1.0
     assert second["update_cost_vs_first"] == pytest.approx(second["update_ms"] / first["update_ms"])
+    # matmul MACs per sample, by hand from the architecture (N = 10 humans, 11 nodes):
+    # w_r 9*64+64*32, w_h 10*(5*64+64*32), gat0 rows+cols 2*11*32*64 and A@H 11*11*32, gat1 robot
+    # row 32*64, cols 11*32*64 and A@H 11*32, head 32*128+3*128*128+128*1+128*81
+    macs = 2624 + 23680 + 2 * 22528 + 3872 + 2048 + 22528 + 352 + 63744
+    forward = 2 * macs * 100  # FLOP per pass at batch 100
+    backward = 2 * forward - 2 * 100 * (9 * 64 + 10 * 5 * 64)  # no gradient w.r.t. the observations
+    assert first["matmul_mflop_per_update"] == pytest.approx((3 * forward + backward) / 1e6)
+    assert first["matmul_gflop_per_s"] == pytest.approx(first["matmul_mflop_per_update"] / first["update_ms"])
