@@ -28,20 +28,23 @@ import torch
 BUDGET_FRAMES = BUDGET_UPDATES = 500_000
 
 
-def matmul_mflop_per_update(tr) -> float:
-    """Matmul MFLOP of one update's loss forward + backward (``torch.utils.flop_counter``; the
-    optimiser is not a matmul and elementwise ops are not counted): the work the update's time buys."""
+def matmul_mflop_per_update(loss, sample) -> float:
+    """Matmul MFLOP of the D3QN loss's forward + backward on ``sample`` (``torch.utils.flop_counter``;
+    the optimiser is not a matmul and elementwise ops are not counted): the work an update's time buys.
+
+    Run after all timing: torch code runs measurably slower in a process after a
+    ``FlopCounterMode`` (2-3x for this network, torch 2.13), so counting first would skew the times.
+    """
     from torch.utils.flop_counter import FlopCounterMode
 
-    sample = tr.buffer.sample()
     with FlopCounterMode(display=False) as counter:
-        tr.loss(sample)["loss"].backward()
-    tr.optimizer.zero_grad(set_to_none=True)
+        loss(sample)["loss"].backward()
     return counter.get_total_flops() / 1e6
 
 
-def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> dict:
-    """Collection rate and per-update breakdown (ms) for one exploration variant."""
+def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tuple[dict, tuple]:
+    """Collection rate and per-update breakdown (ms) for one exploration variant, and the
+    (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
 
     from crowdrl.training.config import validate
@@ -68,7 +71,6 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
     collect_s = time.perf_counter() - start
     collector.shutdown()
 
-    mflop = matmul_mflop_per_update(tr)
     parts: dict[str, list[float]] = {"sample": [], "loss_forward": [], "backward": [], "optimizer": []}
     for i in range(args.updates + 20):
         t0 = time.perf_counter()
@@ -92,6 +94,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
             for key, value in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 parts[key].append(value)
     tr.close()
+    flop_probe = (tr.loss, tr.buffer.sample())
     ms = {k: 1e3 * statistics.mean(v) for k, v in parts.items()}
     update_ms = sum(ms.values())
     frames_per_s = collected / collect_s
@@ -101,8 +104,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> di
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
     return {"exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
-            "matmul_mflop_per_update": mflop, "matmul_gflop_per_s": mflop / update_ms,
-            "update_ms_for_1h_budget": update_ms_for_1h}
+            "update_ms_for_1h_budget": update_ms_for_1h}, flop_probe
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -124,7 +126,11 @@ def main(argv: list[str] | None = None) -> dict:
     if args.warmup_frames < 100:
         p.error("--warmup-frames must be >= 100 (one batch of 100 is sampled from the buffer)")
     torch.set_num_threads(args.threads)
-    results = [measure(x, backend, args) for x in args.explorations for backend in args.loss]
+    measured = [measure(x, backend, args) for x in args.explorations for backend in args.loss]
+    results = [r for r, _ in measured]
+    for r, probe in measured:  # after every timing (see matmul_mflop_per_update)
+        r["matmul_mflop_per_update"] = mflop = matmul_mflop_per_update(*probe)
+        r["matmul_gflop_per_s"] = mflop / r["update_ms"]
     base = results[0]["update_ms"]
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
