@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
-from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, check_actions, unicycle_step
+from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
 from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
@@ -24,7 +24,9 @@ class CrowdNavEnv(EnvBase):
     v_pref, heading) and ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius). Per-step info:
     ``"min_separation"``, ``"discomfort_count"``, ``"event"`` (0 running, 1 success,
     2 collision, 3 timeout) and ``"episode_id"``. Actions are indices into the 81-action
-    unicycle table. Collision and goal terminate; the time limit truncates.
+    unicycle table, or, with ``robot_kinematics="holonomic"``, velocities ``[B, 2]`` clipped to
+    ``v_pref`` (:func:`crowdrl.sim.kinematics.decode_action`). Collision and goal terminate;
+    the time limit truncates.
 
     ``orca_backend="compiled"`` steps the humans with the ``torch.compile`` ORCA of
     :mod:`crowdrl.sim.fast` (same numbers; compiles for minutes on first use per batch shape).
@@ -47,6 +49,7 @@ class CrowdNavEnv(EnvBase):
         config: CrowdConfig | None = None,
         dtype: torch.dtype = torch.float32,
         orca_backend: str = "eager",
+        robot_kinematics: str = "unicycle",
     ) -> None:
         if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -55,9 +58,12 @@ class CrowdNavEnv(EnvBase):
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if config is None:
-            config = CrowdConfig(scenario=scenario, num_humans=num_humans, orca_backend=orca_backend)
+            config = CrowdConfig(scenario=scenario, num_humans=num_humans, orca_backend=orca_backend,
+                                 robot_kinematics=robot_kinematics)
         elif config.scenario != scenario or config.num_humans != num_humans:
             raise ValueError("pass scenario/num_humans either directly or through config, not both differently")
+        elif orca_backend != "eager" or robot_kinematics != "unicycle":
+            raise ValueError("with a config, set orca_backend and robot_kinematics in the config")
         super().__init__(device=torch.device(device), batch_size=torch.Size([int(num_envs)]))
         self.config = config
         self.split = split
@@ -77,6 +83,17 @@ class CrowdNavEnv(EnvBase):
     def num_humans(self) -> int:
         return self.config.num_humans
 
+    @property
+    def next_episode(self) -> int:
+        """The episode id the next reset without ``"load_episode"`` takes (first sub-env)."""
+        return self._next_episode
+
+    def set_next_episode(self, episode: int) -> None:
+        """Continue the stream at ``episode`` (a resumed run starts fresh episodes, not repeats)."""
+        if isinstance(episode, bool) or int(episode) != episode or episode < 0:
+            raise ValueError(f"episode must be a non-negative integer, got {episode!r}")
+        self._next_episode = int(episode)
+
     def _make_specs(self) -> None:
         B, N, dev = self.num_envs, self.config.num_humans, self.device
         self.observation_spec = Composite(
@@ -89,7 +106,11 @@ class CrowdNavEnv(EnvBase):
             shape=(B,),
             device=dev,
         )
-        self.action_spec = Categorical(NUM_ACTIONS, shape=(B,), dtype=torch.int64, device=dev)
+        if self.config.robot_kinematics == "unicycle":
+            self.action_spec = Categorical(NUM_ACTIONS, shape=(B,), dtype=torch.int64, device=dev)
+        else:  # holonomic: a velocity, clipped to v_pref by the env (the box bounds each component)
+            v = self.config.robot_v_pref
+            self.action_spec = Bounded(-v, v, shape=(B, 2), dtype=self.dtype, device=dev)
         self.reward_spec = Unbounded((B, 1), dtype=self.dtype, device=dev)
         self.done_spec = Composite(
             done=Categorical(2, (B, 1), dtype=torch.bool, device=dev),
@@ -175,13 +196,14 @@ class CrowdNavEnv(EnvBase):
         action = tensordict.get("action")
         if action.device != self.device:
             raise ValueError(f"action is on {action.device}, the env on {self.device}")
-        if action.shape == (self.num_envs, NUM_ACTIONS) and action.dtype == torch.bool:
-            action = action.long().argmax(-1)  # one-hot
-        elif action.shape == (self.num_envs, 1):
-            action = action.squeeze(-1)
-        action = check_actions(action, self.num_envs)
-        speed_rot = self._actions[action]
-        heading, velocity = unicycle_step(self.state.robot_heading, speed_rot[:, 0], speed_rot[:, 1])
+        kinematics = self.config.robot_kinematics
+        if kinematics == "unicycle":
+            if action.shape == (self.num_envs, NUM_ACTIONS) and action.dtype == torch.bool:
+                action = action.long().argmax(-1)  # one-hot
+            elif action.shape == (self.num_envs, 1):
+                action = action.squeeze(-1)
+        velocity, heading = decode_action(kinematics, action, self.state.robot_heading, self._actions,
+                                          self.config.robot_v_pref)
         self.state, res = step(self.config, self.state, velocity, heading)
         self._last = (res.min_separation, res.discomfort_count, res.event)
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from crowdrl.sim.kinematics import KINEMATICS
+
 SCENARIOS = ("circle", "square")
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
@@ -42,12 +44,17 @@ class CrowdConfig:
     # Collision check over the step with the humans' velocities of this step ("new", the motion
     # that happens) or, as upstream CrowdNav did, those from the start of the step ("start").
     collision_velocity: str = "new"
+    # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
+    # clipped to robot_v_pref; the ORCA robot baseline acts this way).
+    robot_kinematics: str = "unicycle"
 
     def __post_init__(self) -> None:
         if self.orca_backend not in ORCA_BACKENDS:
             raise ValueError(f"orca_backend must be one of {ORCA_BACKENDS}, got {self.orca_backend!r}")
         if self.collision_velocity not in ("new", "start"):
             raise ValueError(f"collision_velocity must be 'new' or 'start', got {self.collision_velocity!r}")
+        if self.robot_kinematics not in KINEMATICS:
+            raise ValueError(f"robot_kinematics must be one of {KINEMATICS}, got {self.robot_kinematics!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario must be one of {SCENARIOS}, got {self.scenario!r}")
         if isinstance(self.num_humans, bool) or int(self.num_humans) != self.num_humans or self.num_humans < 1:

@@ -1,4 +1,7 @@
-"""The robot's unicycle kinematics and its 81-action table (``SPEC.md`` §1)."""
+"""The robot's kinematics: the unicycle with its 81-action table, or a holonomic robot that
+takes its velocity directly (``docs/mdp.md``). :func:`decode_action` is the one place where an
+action becomes a velocity and heading; the TorchRL env, the Gymnasium face and the benchmarks
+all call it."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ NUM_SPEEDS = 5
 NUM_ROTATIONS = 16
 NUM_ACTIONS = 1 + NUM_SPEEDS * NUM_ROTATIONS  # 81
 MAX_ROTATION = math.pi / 6
+KINEMATICS = ("unicycle", "holonomic")
 
 
 def action_table(v_pref: float = 1.0, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Tensor:
@@ -45,3 +49,44 @@ def unicycle_step(heading: Tensor, speed: Tensor, rotation: Tensor) -> tuple[Ten
     new_heading = heading + rotation
     velocity = torch.stack((speed * torch.cos(new_heading), speed * torch.sin(new_heading)), dim=-1)
     return new_heading, velocity
+
+
+def check_velocities(action: Tensor, batch_size: int) -> Tensor:
+    """Validate a ``[B, 2]`` floating tensor of finite robot velocities (holonomic actions)."""
+    if not action.dtype.is_floating_point:
+        raise TypeError(f"a holonomic action must be a floating [B, 2] velocity, got {action.dtype}")
+    if action.shape != (batch_size, 2):
+        raise ValueError(f"a holonomic action must be shaped [{batch_size}, 2], got {tuple(action.shape)}")
+    if not bool(torch.isfinite(action).all()):
+        raise ValueError("a holonomic action must be finite (got NaN or inf)")
+    return action
+
+
+def clip_speed(velocity: Tensor, v_pref: float) -> Tensor:
+    """Scale each ``[..., 2]`` velocity faster than ``v_pref`` down to ``v_pref`` (others unchanged)."""
+    speed = torch.linalg.vector_norm(velocity, dim=-1, keepdim=True)
+    return torch.where(speed > v_pref, velocity * (v_pref / speed.clamp_min(1e-12)), velocity)
+
+
+def decode_action(kinematics: str, action: Tensor, heading: Tensor, table: Tensor | None = None,
+                  v_pref: float = 1.0) -> tuple[Tensor, Tensor | None]:
+    """The robot's velocity ``[B, 2]`` during a step and its heading ``[B]`` after it.
+
+    ``unicycle``: ``action [B]`` indexes ``table`` (:func:`action_table`): rotate, then move.
+    ``holonomic``: ``action [B, 2]`` is the velocity, clipped to ``v_pref``; the heading is
+    ``None`` (the simulator takes the velocity's direction, unchanged when stopped).
+
+    >>> v, h = decode_action("unicycle", torch.tensor([0]), torch.zeros(1), action_table())
+    >>> v.tolist(), h.tolist()
+    ([[0.0, 0.0]], [0.0])
+    """
+    B = heading.shape[0]
+    if kinematics == "unicycle":
+        if table is None:
+            raise ValueError("decode_action: the unicycle needs its action table")
+        speed_rot = table[check_actions(action, B)]
+        new_heading, velocity = unicycle_step(heading, speed_rot[:, 0], speed_rot[:, 1])
+        return velocity, new_heading
+    if kinematics == "holonomic":
+        return clip_speed(check_velocities(action, B).to(heading.dtype), v_pref), None
+    raise ValueError(f"kinematics must be one of {KINEMATICS}, got {kinematics!r}")
