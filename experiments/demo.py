@@ -62,9 +62,8 @@ def main(argv: list[str] | None = None) -> dict:
         p.error(f"invalid configuration: {exc}")
     import torch
 
-    from crowdrl.evaluation import evaluate_policy
-    from crowdrl.policies import OrcaRobotPolicy
-    from crowdrl.sim.config import CrowdConfig
+    from crowdrl.evaluation import evaluate_orca
+    from crowdrl.training.factories import crowd_config
     from crowdrl.training import run_training
 
     out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
@@ -78,9 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     agent = summary["test"]["metrics"]
 
     torch.set_num_threads(run.threads)
-    crowd = CrowdConfig(scenario=run.env.scenario, num_humans=run.env.num_humans)
-    orca, _ = evaluate_policy(crowd, OrcaRobotPolicy(), split="test", seed=summary["test"]["test_seed"],
-                              num_episodes=run.train.test_episodes, batch_size=min(run.train.test_episodes, 1000))
+    orca, _ = evaluate_orca(crowd_config(run), seed=summary["test"]["test_seed"], episodes=run.train.test_episodes)
     orca = orca.as_dict()
     result = {"agent": agent, "orca": orca, "beats_orca": agent["success_rate"] > orca["success_rate"],
               "frames": summary["frames"], "updates": summary["updates"], "best_frames": summary["best_frames"],

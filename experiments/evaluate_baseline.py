@@ -14,8 +14,7 @@ import time
 
 import torch
 
-from crowdrl.evaluation import evaluate_policy
-from crowdrl.policies import OrcaRobotPolicy
+from crowdrl.evaluation import evaluate_orca
 from crowdrl.sim.config import SCENARIOS, CrowdConfig
 
 # Upstream's ORCA row (SPEC §5): return, success, collision, navigation time.
@@ -47,8 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
     for scenario in args.scenarios:
         cfg = CrowdConfig(scenario=scenario, num_humans=args.num_humans, collision_velocity=args.collision_velocity)
         start = time.perf_counter()
-        metrics, _ = evaluate_policy(cfg, OrcaRobotPolicy(), split="test", seed=args.seed,
-                                     num_episodes=args.episodes, batch_size=args.batch_size)
+        metrics, _ = evaluate_orca(cfg, seed=args.seed, episodes=args.episodes, batch=args.batch_size)
         results[scenario] = {**metrics.as_dict(), "seconds": time.perf_counter() - start}
     if args.json:
         print(json.dumps({"seed": args.seed, "episodes": args.episodes, "results": results}, indent=1))

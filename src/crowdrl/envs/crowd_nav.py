@@ -23,7 +23,8 @@ class CrowdNavEnv(EnvBase):
     Observations (world frame): ``"robot"`` ``[B, 9]`` = (px, py, vx, vy, radius, gx, gy,
     v_pref, heading) and ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius). Per-step info:
     ``"min_separation"``, ``"discomfort_count"``, ``"event"`` (0 running, 1 success,
-    2 collision, 3 timeout) and ``"episode_id"``. Actions are indices into the 81-action
+    2 collision, 3 timeout), ``"episode_id"`` and ``"human_goals"`` ``[B, N, 2]`` (for
+    recording trajectories; no policy of crowdrl reads it). Actions are indices into the 81-action
     unicycle table, or, with ``robot_kinematics="holonomic"``, velocities ``[B, 2]`` clipped to
     ``v_pref`` (:func:`crowdrl.sim.kinematics.decode_action`). Collision and goal terminate;
     the time limit truncates.
@@ -32,9 +33,10 @@ class CrowdNavEnv(EnvBase):
     :mod:`crowdrl.sim.fast` (same numbers; compiles for minutes on first use per batch shape).
 
     Episodes come from the ``split`` stream (``train``, ``val`` or ``test``) of ``seed``:
-    each (partial) reset takes the next episode ids in sub-env order, unless the reset
-    tensordict carries ``"load_episode"`` ``[B, 1]``, in which case those episodes are loaded
-    (episode ``i`` is the same whatever ``num_envs`` or device).
+    each (partial) reset takes the next episode ids in sub-env order, unless episodes were
+    queued with :meth:`load_episodes` (or the reset tensordict of the bare env carries
+    ``"load_episode"`` ``[B, 1]``), in which case those episodes are loaded (episode ``i`` is the
+    same whatever ``num_envs`` or device).
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class CrowdNavEnv(EnvBase):
         self.dtype = dtype
         self._seed = 0
         self._next_episode = 0
+        self._queued: torch.Tensor | None = None
         self._actions = action_table(config.robot_v_pref, dtype=dtype, device=self.device)
         self.state: CrowdState | None = None
         self._make_specs()
@@ -94,6 +97,17 @@ class CrowdNavEnv(EnvBase):
             raise ValueError(f"episode must be a non-negative integer, got {episode!r}")
         self._next_episode = int(episode)
 
+    def load_episodes(self, episode_ids: torch.Tensor) -> None:
+        """Make the next reset load episodes ``episode_ids [B]`` (one per sub-env) instead of the
+        next ones of the stream. Works through any ``TransformedEnv``:
+        ``env.base_env.load_episodes(ids); env.reset()``."""
+        ids = torch.as_tensor(episode_ids, dtype=torch.int64, device=self.device).reshape(-1)
+        if ids.shape != (self.num_envs,):
+            raise ValueError(f"episode_ids must hold one id per sub-env ({self.num_envs}), got {tuple(ids.shape)}")
+        if bool((ids < 0).any()):
+            raise ValueError("episode_ids must be >= 0")
+        self._queued = ids.clone()
+
     def _make_specs(self) -> None:
         B, N, dev = self.num_envs, self.config.num_humans, self.device
         self.observation_spec = Composite(
@@ -103,6 +117,7 @@ class CrowdNavEnv(EnvBase):
             discomfort_count=Unbounded((B, 1), dtype=torch.int64, device=dev),
             event=Categorical(4, (B, 1), dtype=torch.int64, device=dev),
             episode_id=Unbounded((B, 1), dtype=torch.int64, device=dev),
+            human_goals=Unbounded((B, N, 2), dtype=self.dtype, device=dev),
             shape=(B,),
             device=dev,
         )
@@ -140,6 +155,7 @@ class CrowdNavEnv(EnvBase):
                 "discomfort_count": discomfort.unsqueeze(-1),
                 "event": event.unsqueeze(-1),
                 "episode_id": episode_id.clone(),  # never hand out views of internal state
+                "human_goals": state.human_goal.clone(),  # not the robot's to see: for recording only
             },
             batch_size=self.batch_size,
             device=self.device,
@@ -159,6 +175,8 @@ class CrowdNavEnv(EnvBase):
             if bool((given[reset_mask] < 0).any()):
                 raise ValueError("load_episode must be >= 0 for the sub-envs being reset")
             ids = given
+        elif self._queued is not None:
+            ids, self._queued = self._queued, None
         if ids is None:
             k = int(reset_mask.sum())
             ids = torch.zeros(B, dtype=torch.int64, device=self.device)

@@ -1,123 +1,148 @@
-"""Batched evaluation of a robot policy on fixed scenario streams, straight on the simulator."""
+"""Evaluation of any TorchRL policy on fixed episodes of a ``CrowdNavEnv``: the one rollout path.
+
+Validation during training, the final test, the ORCA baseline and ``experiments/evaluate.py``
+all call :func:`evaluate` on an env from the same maker as training (``CrowdNavEnv`` plus its
+transforms) with a TorchRL policy, through ``env.rollout``. Episodes are loaded by id
+(:meth:`CrowdNavEnv.load_episodes` before the reset), so episode ``i`` of the env's stream is the same
+whatever the env's batch size; metrics are computed from what the env emits.
+
+>>> from torchrl.envs import TransformedEnv
+>>> from crowdrl.envs import CrowdNavEnv
+>>> from crowdrl.policies import OrcaRobotPolicy
+>>> env = CrowdNavEnv("circle", num_envs=50, split="test", robot_kinematics="holonomic")
+>>> metrics, _ = evaluate(env, OrcaRobotPolicy(env.config), num_episodes=100)  # doctest: +SKIP
+"""
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from typing import Callable
 
-import numpy as np
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from crowdrl.envs.crowd_nav import CrowdNavEnv
 from crowdrl.evaluation.metrics import EpisodeMetrics, discount_per_step, episode_metrics
-from crowdrl.sim import rng
-from crowdrl.sim.config import CrowdConfig
-from crowdrl.sim.crowd import EVENT_NAMES, RUNNING, step
-from crowdrl.sim.kinematics import action_table, unicycle_step
-from crowdrl.sim.scenarios import initial_states
-from crowdrl.sim.state import CrowdState
-from crowdrl.viz.trajectory import Trajectory
+from crowdrl.evaluation.trajectory import Trajectory
+from crowdrl.sim.crowd import EVENT_NAMES
+
+Policy = Callable[[TensorDictBase], TensorDictBase]
 
 
-class RobotPolicy(Protocol):
-    """Maps the batched state to the robot's velocity ``[B, 2]`` and heading ``[B]`` (or None)."""
-
-    def __call__(self, cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor | None]: ...
-
-
-class DiscreteActionPolicy:
-    """Adapts ``choose(cfg, state) -> action indices [B]`` to the unicycle robot."""
-
-    def __init__(self, choose: Callable[[CrowdConfig, CrowdState], Tensor]) -> None:
-        self.choose = choose
-
-    def __call__(self, cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
-        table = action_table(cfg.robot_v_pref, dtype=state.robot_position.dtype, device=state.device)
-        a = self.choose(cfg, state)
-        return unicycle_step(state.robot_heading, table[a, 0], table[a, 1])[::-1]
+def crowd_env_of(env: EnvBase) -> CrowdNavEnv:
+    """The :class:`CrowdNavEnv` at the bottom of ``env`` (itself, or a ``TransformedEnv``'s base)."""
+    base = env
+    while not isinstance(base, CrowdNavEnv):
+        nxt = getattr(base, "base_env", None)
+        if nxt is None or nxt is base:
+            raise TypeError(f"evaluate needs a CrowdNavEnv (optionally transformed), got {type(env).__name__}")
+        base = nxt
+    return base
 
 
-def evaluate_policy(
-    cfg: CrowdConfig,
-    policy: RobotPolicy,
+def episode_records(rollout: TensorDictBase, max_steps: int) -> dict[str, Tensor]:
+    """Per-episode records of a ``[B, T]`` rollout whose envs all started a fresh episode at t = 0.
+
+    Each row's episode ends at its first ``done``; later steps of that row (the env reset it and
+    went on) are ignored. Returns ``events``, ``lengths``, ``rewards [B, max_steps]``
+    (zero-padded), ``discomfort_steps`` and ``discomfort_separation_sum``.
+    """
+    nxt = rollout.get("next")
+    done = nxt.get("done").reshape(rollout.shape)
+    if not bool(done.any(-1).all()):
+        raise RuntimeError("an episode did not end within the rollout (the env must truncate at max_steps)")
+    B, T = done.shape
+    first = done.to(torch.int8).argmax(-1)  # [B] index of each row's first done
+    inside = torch.arange(T, device=done.device).unsqueeze(0) <= first.unsqueeze(-1)
+    rewards = torch.where(inside, nxt.get("reward").reshape(B, T).double(), 0.0)
+    in_disc = inside & (nxt.get("discomfort_count").reshape(B, T) > 0)
+    min_sep = nxt.get("min_separation").reshape(B, T).double()
+    padded = torch.zeros(B, max_steps, dtype=torch.float64, device=done.device)
+    padded[:, :T] = rewards[:, :max_steps]
+    return {
+        "events": nxt.get("event").reshape(B, T).gather(1, first.unsqueeze(-1)).squeeze(-1),
+        "lengths": first + 1,
+        "rewards": padded,
+        "discomfort_steps": in_disc.sum(-1),
+        "discomfort_separation_sum": torch.where(in_disc, min_sep, 0.0).sum(-1),
+    }
+
+
+@torch.no_grad()
+def evaluate(
+    env: EnvBase,
+    policy: Policy,
     *,
-    split: str = "test",
-    seed: int = 0,
     num_episodes: int = 1000,
-    batch_size: int = 1000,
-    device: torch.device | str = "cpu",
+    first_episode: int = 0,
     record_episode: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[EpisodeMetrics, Trajectory | None]:
-    """Run episodes ``0 .. num_episodes-1`` of ``split``/``seed`` and aggregate the metrics.
+    """Run episodes ``first_episode .. first_episode + num_episodes - 1`` of ``env``'s stream.
 
-    Episodes are run in batches of ``batch_size``; episode ``i`` is the same whatever the batch
-    size. When ``record_episode`` is given, that episode's trajectory is returned too.
+    ``env`` is a :class:`CrowdNavEnv` (its ``split`` and ``seed`` name the stream: ``test`` for
+    test cases, ``val`` for validation), optionally inside a ``TransformedEnv``; ``policy`` is any
+    TorchRL policy (a ``TensorDictModule`` or a callable on tensordicts) for that env. Episodes
+    run ``env.num_envs`` at a time through ``env.rollout`` under the deterministic exploration
+    type (greedy ε, dropout off); turn noisy layers off around the call. When
+    ``record_episode`` is given, that episode's :class:`Trajectory` is returned too.
     """
-    if num_episodes < 1 or batch_size < 1:
-        raise ValueError("num_episodes and batch_size must be >= 1")
-    if record_episode is not None and not 0 <= record_episode < num_episodes:
-        raise ValueError(f"record_episode must lie in 0..{num_episodes - 1}, got {record_episode}")
-    T = cfg.max_steps
-    records: dict[str, list[Tensor]] = {k: [] for k in ("events", "lengths", "rewards", "disc", "disc_sep")}
+    if isinstance(num_episodes, bool) or int(num_episodes) != num_episodes or num_episodes < 1:
+        raise ValueError(f"num_episodes must be an integer >= 1, got {num_episodes!r}")
+    if first_episode < 0:
+        raise ValueError(f"first_episode must be >= 0, got {first_episode}")
+    if record_episode is not None and not first_episode <= record_episode < first_episode + num_episodes:
+        raise ValueError(f"record_episode must lie in {first_episode}..{first_episode + num_episodes - 1}, "
+                         f"got {record_episode}")
+    crowd = crowd_env_of(env)
+    cfg, B, device = crowd.config, crowd.num_envs, crowd.device
+    records: dict[str, list[Tensor]] = {}
     trajectory = None
-    for first in range(0, num_episodes, batch_size):
-        ids = torch.arange(first, min(first + batch_size, num_episodes), device=device)
-        B = ids.shape[0]
-        state = initial_states(cfg, rng.episode_keys(split, seed, ids))
-        alive = torch.ones(B, dtype=torch.bool, device=device)
-        events = torch.full((B,), RUNNING, dtype=torch.int64, device=device)
-        lengths = torch.zeros(B, dtype=torch.int64, device=device)
-        rewards = torch.zeros(B, T, dtype=torch.float64, device=device)
-        disc = torch.zeros(B, dtype=torch.int64, device=device)
-        disc_sep = torch.zeros(B, dtype=torch.float64, device=device)
-        rec = None
-        if record_episode is not None and first <= record_episode < first + B:
-            rec = (record_episode - first, [state.index(record_episode - first)])
-        for t in range(T):
-            velocity, heading = policy(cfg, state)
-            state, res = step(cfg, state, velocity, heading)
-            rewards[:, t] = torch.where(alive, res.reward.double(), 0.0)
-            in_disc = alive & (res.discomfort_count > 0)
-            disc += in_disc.long()
-            disc_sep += torch.where(in_disc, res.min_separation.double(), 0.0)
-            lengths += alive.long()
-            ended = alive & (res.event != RUNNING)
-            events = torch.where(ended, res.event, events)
-            if rec is not None and bool(alive[rec[0]]):
-                rec[1].append(state.index(rec[0]))
-            alive = alive & ~ended
-            if not bool(alive.any()):
-                break
-        for k, v in zip(records, (events, lengths, rewards, disc, disc_sep)):
-            records[k].append(v)
-        if rec is not None:
-            trajectory = _trajectory(cfg, rec[1], EVENT_NAMES[int(events[rec[0]])])
+    stop = first_episode + num_episodes
+    for first in range(first_episode, stop, B):
+        n = min(B, stop - first)
+        # a last partial chunk fills its spare sub-envs with copies of its last episode (ignored)
+        ids = torch.arange(first, first + B, device=device).clamp_max(stop - 1)
+        crowd.load_episodes(ids)
+        start = env.reset()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            rollout = env.rollout(cfg.max_steps, policy, auto_reset=False, tensordict=start,
+                                  break_when_any_done=False, break_when_all_done=True)
+        chunk = episode_records(rollout, cfg.max_steps)
+        for key, value in chunk.items():
+            records.setdefault(key, []).append(value[:n])
+        if record_episode is not None and first <= record_episode < first + n:
+            row = record_episode - first
+            trajectory = recorded_trajectory(cfg, start[row], rollout[row], int(chunk["lengths"][row]),
+                                             EVENT_NAMES[int(chunk["events"][row])])
         if progress is not None:
-            progress(B)
+            progress(n)
     metrics = episode_metrics(
-        torch.cat(records["events"]),
-        torch.cat(records["lengths"]),
-        torch.cat(records["rewards"]),
-        torch.cat(records["disc"]),
-        torch.cat(records["disc_sep"]),
+        *(torch.cat(records[k]) for k in ("events", "lengths", "rewards", "discomfort_steps",
+                                          "discomfort_separation_sum")),
         time_step=cfg.time_step,
         discount=discount_per_step(cfg.time_step, cfg.robot_v_pref),
     )
     return metrics, trajectory
 
 
-def _trajectory(cfg: CrowdConfig, states: list[CrowdState], outcome: str) -> Trajectory:
-    def arr(name: str) -> np.ndarray:
-        return torch.stack([getattr(s, name) for s in states]).double().cpu().numpy()
+def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str) -> Trajectory:
+    """The :class:`Trajectory` of one env row: its reset observation and its first ``length`` steps."""
+    def series(key: str) -> Tensor:
+        first = start.get(key).unsqueeze(0)
+        return torch.cat((first, steps.get(("next", key))[:length]), 0).double().cpu()
 
+    robot, humans, goals = series("robot"), series("humans"), series("human_goals")
     return Trajectory(
-        robot_positions=arr("robot_position"),
-        robot_goal=states[0].robot_goal.double().cpu().numpy(),
+        robot_positions=robot[:, 0:2].numpy(),
+        robot_goal=robot[0, 5:7].numpy(),
         robot_radius=cfg.robot_radius,
-        human_positions=arr("human_position"),
-        human_goals=arr("human_goal"),
+        human_positions=humans[..., 0:2].numpy(),
+        human_goals=goals.numpy(),
         human_radius=cfg.human_radius,
         time_step=cfg.time_step,
         outcome=outcome,
-        robot_headings=arr("robot_heading"),
+        robot_headings=robot[:, 8].numpy(),
     )

@@ -1,49 +1,66 @@
-"""The ORCA robot baseline (``SPEC.md`` §2), batched over episodes.
+"""The ORCA robot baseline (``docs/mdp.md``), a TorchRL policy on the world-frame observation.
 
 The robot runs its own ORCA among the humans it observes: holonomic, continuous velocity,
 robot radius + 0.01, humans' radius + 0.01 + 0.2 safety space, humans' preferred velocities
 zero (their goals are unknown to the robot), robot preferred velocity the unit vector to its
-goal (shorter within 1 m). Only the robot's velocity is used.
+goal (shorter within 1 m). Only the robot's velocity is used: it is written as ``"action"`` for
+a ``CrowdNavEnv`` with ``robot_kinematics="holonomic"``.
+
+>>> from crowdrl.envs import CrowdNavEnv
+>>> env = CrowdNavEnv("circle", num_envs=4, robot_kinematics="holonomic")
+>>> rollout = env.rollout(10, OrcaRobotPolicy(env.config))
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import human_preferred_velocity
 from crowdrl.sim.orca import orca_solve
-from crowdrl.sim.state import CrowdState
 
 
-@dataclass(frozen=True)
-class OrcaRobotPolicy:
-    """Batched ORCA robot policy: ``policy(cfg, state) -> (velocity [B, 2], heading [B] | None)``."""
+class OrcaRobotPolicy(TensorDictModuleBase):
+    """Batched ORCA robot: reads ``"robot"`` ``[B, 9]`` and ``"humans"`` ``[B, N, 5]`` (world
+    frame, as ``CrowdNavEnv`` emits them), writes the velocity ``"action"`` ``[B, 2]``.
 
-    safety_space: float = 0.2
-    radius_margin: float = 0.01
+    ``config`` supplies the ORCA parameters (time step, neighbour distance and count, time
+    horizon) and the humans' maximum speed the robot assumes; positions, velocities, radii, the
+    goal and the robot's preferred speed come from the observation.
+    """
 
-    def __post_init__(self) -> None:
-        if self.safety_space < 0 or self.radius_margin < 0:
+    def __init__(self, config: CrowdConfig | None = None, *, safety_space: float = 0.2,
+                 radius_margin: float = 0.01) -> None:
+        super().__init__()
+        if safety_space < 0 or radius_margin < 0:
             raise ValueError("safety_space and radius_margin must be >= 0")
+        self.config = config or CrowdConfig()
+        self.safety_space = safety_space
+        self.radius_margin = radius_margin
+        self.in_keys = ["robot", "humans"]
+        self.out_keys = ["action"]
 
-    def __call__(self, cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor | None]:
-        B, N = state.batch_size, state.num_humans
-        dtype, dev = state.robot_position.dtype, state.device
-        positions = torch.cat((state.robot_position.unsqueeze(1), state.human_position), dim=1)
-        velocities = torch.cat((state.robot_velocity.unsqueeze(1), state.human_velocity), dim=1)
+    def velocity(self, robot: Tensor, humans: Tensor) -> Tensor:
+        """The robot's ORCA velocity ``[B, 2]`` for world-frame observations."""
+        cfg = self.config
+        positions = torch.cat((robot[:, None, 0:2], humans[..., 0:2]), dim=1)
+        velocities = torch.cat((robot[:, None, 2:4], humans[..., 2:4]), dim=1)
         pref = torch.zeros_like(positions)
-        pref[:, 0] = human_preferred_velocity(state.robot_position, state.robot_goal)
-        radius = torch.full((B, N + 1), cfg.human_radius + self.radius_margin + self.safety_space, dtype=dtype, device=dev)
-        radius[:, 0] = cfg.robot_radius + self.radius_margin
-        max_speed = torch.full((B, N + 1), cfg.human_v_pref, dtype=dtype, device=dev)
-        max_speed[:, 0] = cfg.robot_v_pref
+        pref[:, 0] = human_preferred_velocity(robot[:, 0:2], robot[:, 5:7])
+        radius = torch.cat((robot[:, None, 4] + self.radius_margin,
+                            humans[..., 4] + (self.radius_margin + self.safety_space)), dim=1)
+        max_speed = torch.full_like(radius, cfg.human_v_pref)
+        max_speed[:, 0] = robot[:, 7]
         sol = orca_solve(
             positions, velocities, pref, radius, max_speed,
             time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
             max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon,
         )
-        return sol.velocities[:, 0], None
+        return sol.velocities[:, 0]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set("action", self.velocity(tensordict.get("robot"), tensordict.get("humans")))
+        return tensordict

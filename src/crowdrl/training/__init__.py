@@ -3,8 +3,8 @@
 from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from crowdrl.training.config import ConfigError, RunConfig, validate
 from crowdrl.training.nstep import NStepReturn, nstep_transitions
-from crowdrl.training.pipeline import evaluate_best, run_training
+from crowdrl.training.pipeline import evaluate_best, evaluate_network, load_trained_network, run_training
 from crowdrl.training.trainer import Trainer
 
-__all__ = ["CheckpointError", "ConfigError", "NStepReturn", "RunConfig", "Trainer", "evaluate_best",
+__all__ = ["CheckpointError", "ConfigError", "NStepReturn", "RunConfig", "Trainer", "evaluate_best", "evaluate_network", "load_trained_network",
            "load_checkpoint", "nstep_transitions", "run_training", "save_checkpoint", "validate"]

@@ -21,6 +21,8 @@ class CheckpointError(RuntimeError):
 def config_fingerprint(config: dict) -> str:
     """Hash of the parts of a config that define the learning problem (not budgets or logging)."""
     keep = {k: config[k] for k in ("env", "encoder", "exploration", "seed") if k in config}
+    if "env" in keep:  # the ORCA backend changes speed, not numbers
+        keep["env"] = {k: v for k, v in keep["env"].items() if k != "orca_backend"}
     train = dict(config.get("train", {}))
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
               "val_episodes"):

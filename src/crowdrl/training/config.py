@@ -18,7 +18,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.models import ENCODERS
-from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
+from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")
@@ -35,6 +35,7 @@ class ConfigError(ValueError):
 class EnvConfig:
     scenario: str = "circle"
     num_humans: int = 10
+    orca_backend: str = "eager"  # "compiled": the torch.compile ORCA (same numbers; compiles once per shape)
 
 
 @dataclass
@@ -126,6 +127,7 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     e, t, x = run.env, run.train, run.exploration
     _one_of(e.scenario, "env.scenario", SCENARIOS)
     _check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
+    _one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
     _one_of(x.name, "exploration.name", EXPLORATIONS)
     _check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",

@@ -8,13 +8,17 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict.nn import TensorDictModule
 
-from crowdrl.evaluation import evaluate_policy
-from crowdrl.training.checkpoint import atomic_write_bytes, load_checkpoint
-from crowdrl.training.config import RunConfig
-from crowdrl.training.trainer import Trainer, greedy_policy
+from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
+from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
+from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
+from crowdrl.training.factories import make_actor, make_env
+from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
-from crowdrl.viz import animate_trajectory, plot_learning_curves, plot_trajectory
+
+TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
+EVAL_BATCH = 1000  # episodes stepped at once by evaluation
 
 
 def run_training(run: RunConfig, run_dir: Path | str, *, render: bool = True) -> dict[str, Any]:
@@ -26,39 +30,83 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool = True) ->
         summary = trainer.train()
         result = evaluate_best(run, run_dir, render=render)
         summary = {**summary, "test": result, "wall_s": time.perf_counter() - start}
-        trainer._emit({"kind": "test", "frames": trainer.counters.frames,
-                       **{f"test/{k}": v for k, v in result["metrics"].items()}})
-        trainer._write_status("completed", **summary)
+        trainer.emit({"kind": "test", "frames": trainer.counters.frames,
+                      **{f"test/{k}": v for k, v in result["metrics"].items()}})
+        trainer.write_status("completed", **summary)
         atomic_write_bytes(run_dir / "summary.json", json.dumps(summary, indent=1, default=str).encode())
     except BaseException as exc:
-        trainer._write_status("failed" if not isinstance(exc, KeyboardInterrupt) else "interrupted",
-                              error=repr(exc), frames=trainer.counters.frames)
+        trainer.write_status("failed" if not isinstance(exc, KeyboardInterrupt) else "interrupted",
+                             error=repr(exc), frames=trainer.counters.frames)
         raise
     finally:
         trainer.close()
     if render:
+        from crowdrl.viz import plot_learning_curves
+
         plot_learning_curves(trainer.log.rows(), run_dir / "learning_curves.png",
                              title=f"{run.encoder.name} + {run.exploration.name}, {run.env.scenario}, seed {run.seed}")
     return summary
 
 
+def checkpoint_path(path: Path | str) -> Path:
+    """``path`` itself for a file, ``<path>/checkpoints/best.pt`` for a run folder."""
+    path = Path(path)
+    return path / "checkpoints" / "best.pt" if path.is_dir() else path
+
+
+def load_trained_network(path: Path | str, fingerprint: str | None = None
+                         ) -> tuple[RunConfig, torch.nn.Module, dict[str, Any]]:
+    """The run config, the Q network (eval mode: noise and dropout off) and the raw payload of a
+    trained checkpoint (a run folder or a ``best.pt``).
+
+    Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
+    config the code cannot rebuild, weights that do not fit the network of the config, or (given
+    ``fingerprint``) a checkpoint written by a run with another configuration.
+    """
+    ckpt = checkpoint_path(path)
+    data = load_checkpoint(ckpt, fingerprint)
+    if "net" not in data or "config" not in data:
+        raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
+                              f"checkpoints/best.pt")
+    try:
+        run = validate(data["config"])
+    except ConfigError as exc:
+        raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
+    if data.get("fingerprint") != config_fingerprint(to_dict(run)):
+        raise CheckpointError(f"{ckpt}: its fingerprint does not match the config stored with it (edited or foreign file)")
+    net = make_network(run)
+    try:
+        net.load_state_dict(data["net"])
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[0]
+        raise CheckpointError(f"{ckpt}: the network shape does not match its config ({first})") from None
+    net.eval()  # noise and dropout off: the greedy policy of the mean network
+    return run, net, data
+
+
+def greedy_actor(run: RunConfig, net: torch.nn.Module, env) -> TensorDictModule:
+    """The run's Q actor around a trained ``net`` (greedy; acts on ``env``'s specs)."""
+    return make_actor(run, env, net)
+
+
+def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | None = None, seed: int = TEST_SEED,
+                     episodes: int = 1000, num_humans: int | None = None, record_episode: int | None = None,
+                     batch: int = EVAL_BATCH) -> tuple[EpisodeMetrics, Trajectory | None]:
+    """Test ``net`` on ``episodes`` cases of the test stream ``seed`` (the run's scenario by default)."""
+    env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario,
+                   num_humans=num_humans)
+    return evaluate(env, greedy_actor(run, net, env), num_episodes=episodes, record_episode=record_episode)
+
+
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:
     """Greedy evaluation of ``checkpoints/best.pt`` on the test cases of the run's scenario."""
-    from crowdrl.sim.config import CrowdConfig
-
-    best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
-    net = make_network(run)
-    net.load_state_dict(best["net"])
-    net.eval()  # noise and dropout off: the greedy policy of the mean network
-    cfg = CrowdConfig(scenario=run.env.scenario, num_humans=run.env.num_humans)
-    metrics, traj = evaluate_policy(cfg, greedy_policy(net), split="test", seed=0,
-                                    num_episodes=run.train.test_episodes,
-                                    batch_size=min(run.train.test_episodes, 1000), record_episode=record_episode)
-    out = {"checkpoint_frames": best["frames"], "test_seed": 0, "metrics": metrics.as_dict()}
+    _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)))
+    metrics, traj = evaluate_network(run, net, episodes=run.train.test_episodes, record_episode=record_episode)
+    out = {"checkpoint_frames": best["frames"], "test_seed": TEST_SEED, "metrics": metrics.as_dict()}
     if render and traj is not None:
+        from crowdrl.viz import animate_trajectory, plot_trajectory
+
         plot_trajectory(traj, run_dir / f"test_case{record_episode}.png", title=f"test case {record_episode}")
         animate_trajectory(traj, run_dir / f"test_case{record_episode}.gif")
     atomic_write_bytes(run_dir / "eval.json", json.dumps(out, indent=1).encode())
     return out
-
-

@@ -20,46 +20,23 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
-from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
-from torchrl.modules import EGreedyModule
 
-from crowdrl.envs import CrowdNavEnv, RobotCentric, robot_centric
+from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
-from crowdrl.evaluation import DiscreteActionPolicy, EpisodeMetrics, evaluate_policy
-from crowdrl.models import make_q_actor
-from crowdrl.sim.config import CrowdConfig
-from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT, observe
-from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
+from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
+from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
+                                         save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
-from crowdrl.training.loss import D3QNLoss
-from crowdrl.training.nstep import NStepReturn
-from crowdrl.training.variants import (ONE_STEP_KEY, make_bonus, make_intrinsic_transform, make_network,
-                                       uses_one_step_successor)
+from crowdrl.training.factories import (OBS_KEYS, STORED_KEYS, make_actor, make_buffer, make_collector, make_env,
+                                        make_exploration, make_loss, make_optimizer)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
-
-OBS_KEYS = ("robot_rc", "humans_rc")
-# what a collected batch contributes to the buffer (the n-step transform adds steps_to_next_obs)
-STORED_KEYS = [*OBS_KEYS, "action", *[("next", k) for k in (*OBS_KEYS, "reward", "done", "terminated")]]
+from crowdrl.training.variants import make_bonus, make_network
 
 
 def linear_schedule(start: float, end: float, duration: int, t: int) -> float:
     """``start`` → ``end`` linearly over ``duration`` steps, then ``end``."""
     return end + (start - end) * max(0.0, 1.0 - t / duration)
-
-
-def greedy_policy(net: torch.nn.Module) -> DiscreteActionPolicy:
-    """The Q network acting greedily on the simulator state (for validation and test)."""
-
-    @torch.no_grad()
-    def choose(cfg: CrowdConfig, state) -> torch.Tensor:
-        robot, humans = observe(cfg, state)
-        return net(*robot_centric(robot, humans)).argmax(-1)
-
-    return DiscreteActionPolicy(choose)
 
 
 @dataclass
@@ -86,35 +63,22 @@ class Trainer:
         torch.set_num_threads(run.threads)
         torch.manual_seed(run.seed)
         t = run.train
-        self.crowd_cfg = CrowdConfig(scenario=run.env.scenario, num_humans=run.env.num_humans)
-        base = CrowdNavEnv(config=self.crowd_cfg, scenario=run.env.scenario, num_humans=run.env.num_humans,
-                           num_envs=t.num_envs, seed=run.seed, split="train", device=run.device)
-        self.env = TransformedEnv(base, Compose(RobotCentric(), StepCounter(), RewardSum()))
-        self.net = make_network(run, int(base.action_spec.n)).to(run.device)
-        self.actor = make_q_actor(run.encoder.name, base.action_spec, net=self.net)
-        self.egreedy = EGreedyModule(base.action_spec, eps_init=run.exploration.eps_start,
-                                     eps_end=run.exploration.eps_end, annealing_num_steps=run.exploration.anneal_frames)
-        self.policy = TensorDictSequential(self.actor, self.egreedy)
-        self.loss = D3QNLoss(self.net, OBS_KEYS, gamma=t.gamma, double=True, compile=t.compile_loss)
+        self.env = make_env(run, split="train")
+        self.val_env = make_env(run, split="val", num_envs=t.val_episodes)  # same maker, held-out stream
+        self.crowd_cfg = self.env.base_env.config
+        self.net = make_network(run, int(self.env.action_spec.n)).to(run.device)
+        self.actor = make_actor(run, self.env, self.net)
+        self.policy, self.egreedy = make_exploration(run, self.env, self.actor)
+        self.loss = make_loss(run, self.net)
         # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
         self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
-        # fused Adam: one kernel for all parameters (~4x cheaper than the per-tensor loop on CPU)
-        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=t.lr, fused=True)
+        self.optimizer = make_optimizer(run, self.net)
         self.counters = Counters()
         # ICM / RE3: built after the Q network, from their own seeds (the global RNG is untouched)
-        self.bonus = make_bonus(run, list(OBS_KEYS), int(base.action_spec.n))
-        one_step = ONE_STEP_KEY if uses_one_step_successor(run) else None
-        transform = NStepReturn(t.n_step, t.gamma, OBS_KEYS, one_step_key=one_step)
-        self.intrinsic = None
+        self.bonus = make_bonus(run, list(OBS_KEYS), int(self.env.action_spec.n))
         if self.bonus is not None:
             self.bonus.to(run.device)
-            self.intrinsic = make_intrinsic_transform(run, self.bonus, list(OBS_KEYS), lambda: self.counters.frames)
-            transform = Compose(transform, self.intrinsic)
-        self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(t.buffer_size, device=run.device),
-            batch_size=t.batch_size,
-            transform=transform,
-        )
+        self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames)
         self.log = None
         self.wandb = None
 
@@ -167,16 +131,14 @@ class Trainer:
         if run.logger.name == "wandb":
             self.wandb = WandbMirror(self.dir, self.config_dict, run.logger.project, run.logger.mode,
                                      resume_data.get("wandb_id") if resume_data else None)
-        self._write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
-        self.env.base_env._next_episode = c.next_train_episode  # a resumed run starts fresh episodes
+        self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
+        self.env.base_env.set_next_episode(c.next_train_episode)  # a resumed run starts fresh episodes
         self._set_schedules()  # a resumed run acts with the schedules of its frame count, not their start
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
             summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
-            self._write_status("trained", **summary)
+            self.write_status("trained", **summary)
             return summary
-        frames_per_batch = t.num_envs * t.steps_per_batch
-        collector = Collector(self.env, self.policy, frames_per_batch=frames_per_batch, total_frames=-1,
-                              device=run.device, auto_register_policy_transforms=False)
+        collector = make_collector(run, self.env, self.policy)
         bar = _progress(run.logger.progress_bar, t.total_frames, c.frames)
         timers = {"collect": 0.0, "update": 0.0, "validate": 0.0}
         recent: list[tuple[int, float, int]] = []  # (event, return, steps) of recent episodes
@@ -186,7 +148,7 @@ class Trainer:
                 timers["collect"] += time.perf_counter() - tick
                 frames = batch.numel()
                 c.frames += frames
-                c.next_train_episode = self.env.base_env._next_episode
+                c.next_train_episode = self.env.base_env.next_episode
                 finished = _finished_episodes(batch)
                 c.episodes += len(finished)
                 recent.extend(finished)
@@ -219,7 +181,7 @@ class Trainer:
             if bar is not None:
                 bar.close()
         summary = self._summary(timers)
-        self._write_status("trained", **summary)
+        self.write_status("trained", **summary)
         return summary
 
     def _summary(self, timers: dict) -> dict[str, Any]:
@@ -268,8 +230,7 @@ class Trainer:
         c, t = self.counters, self.run.train
         c.last_val = c.frames
         with noise_disabled(self.net):  # greedy on the mean weights (no-op without noisy layers)
-            metrics, _ = evaluate_policy(self.crowd_cfg, greedy_policy(self.net), split="val", seed=self.run.seed,
-                                         num_episodes=t.val_episodes, batch_size=t.val_episodes, device=self.run.device)
+            metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
                **{f"val/{k}": v for k, v in metrics.as_dict().items()}}
@@ -279,7 +240,7 @@ class Trainer:
                                                         "frames": c.frames, "val": metrics.as_dict()}, self.fingerprint)
             row["val/best"] = 1
         c.history.append((c.frames, metrics.success_rate))
-        self._emit(row)
+        self.emit(row)
         return metrics
 
     def _log_train(self, episodes: list[tuple[int, float, int]], loss_value: float, timers: dict) -> None:
@@ -287,7 +248,7 @@ class Trainer:
         n = len(episodes)
         events = [e for e, _, _ in episodes]
         succ_steps = [s for e, _, s in episodes if e == SUCCESS]
-        self._emit({
+        self.emit({
             "kind": "train", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
             "train/success_rate": events.count(SUCCESS) / n,
             "train/collision_rate": events.count(COLLISION) / n,
@@ -300,14 +261,14 @@ class Trainer:
             **{f"time/{k}_s": v for k, v in timers.items()},
         })
 
-    def _emit(self, row: dict[str, Any]) -> None:
+    def emit(self, row: dict[str, Any]) -> None:
+        """Append a row of scalars to the run's log (and wandb when on)."""
         self.log.log(row)
         if self.wandb is not None:
             self.wandb.log(row)
 
-    def _write_status(self, state: str, **info: Any) -> None:
-        from crowdrl.training.checkpoint import atomic_write_bytes
-
+    def write_status(self, state: str, **info: Any) -> None:
+        """Atomically rewrite ``status.json``: ``{"state": state, **info}``."""
         atomic_write_bytes(self.dir / "status.json",
                            json.dumps({"state": state, **info}, indent=1, default=str).encode())
 
@@ -338,4 +299,4 @@ def _progress(enabled: bool, total: int, initial: int):
     return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 
 
-__all__ = ["Trainer", "greedy_policy", "linear_schedule", "CheckpointError"]
+__all__ = ["Trainer", "linear_schedule", "CheckpointError"]

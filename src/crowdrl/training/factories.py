@@ -1,0 +1,109 @@
+"""Factories of a run, in the TorchRL ``sota-implementations`` style: ``make_env``,
+``make_actor``, ``make_exploration``, ``make_loss``, ``make_buffer``, ``make_collector``.
+
+Training, validation, the final test and ``experiments/evaluate.py`` build their envs with the
+same :func:`make_env` and act with the same actor, so there is one rollout path
+(:func:`crowdrl.evaluation.evaluate`).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
+from torchrl.modules import EGreedyModule
+
+from crowdrl.envs import CrowdNavEnv, RobotCentric
+from crowdrl.models import make_q_actor
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.training.config import RunConfig
+from crowdrl.training.loss import D3QNLoss
+from crowdrl.training.nstep import NStepReturn
+from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, uses_one_step_successor
+
+OBS_KEYS = ("robot_rc", "humans_rc")
+# what a collected batch contributes to the buffer (the n-step transform adds steps_to_next_obs)
+STORED_KEYS = [*OBS_KEYS, "action", *[("next", k) for k in (*OBS_KEYS, "reward", "done", "terminated")]]
+
+
+def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
+                 robot_kinematics: str = "unicycle") -> CrowdConfig:
+    """The simulator constants of ``run`` (``scenario``/``num_humans`` override the run's)."""
+    return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=num_humans or run.env.num_humans,
+                       orca_backend=run.env.orca_backend, robot_kinematics=robot_kinematics)
+
+
+def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = None, seed: int | None = None,
+             scenario: str | None = None, num_humans: int | None = None,
+             robot_kinematics: str = "unicycle") -> TransformedEnv:
+    """``CrowdNavEnv`` + robot-centric state + step counter + episode return.
+
+    Training uses the ``train`` stream of the run seed; validation the ``val`` stream of the run
+    seed; tests the ``test`` stream of the evaluation seed (``seed``), possibly on another
+    ``scenario`` or crowd size than training.
+    """
+    cfg = crowd_config(run, scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
+    base = CrowdNavEnv(cfg.scenario, num_envs=num_envs or run.train.num_envs, num_humans=cfg.num_humans,
+                       config=cfg, seed=run.seed if seed is None else seed, split=split, device=run.device)
+    return TransformedEnv(base, Compose(RobotCentric(), StepCounter(), RewardSum()))
+
+
+def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module) -> TensorDictModule:
+    """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec."""
+    return make_q_actor(run.encoder.name, env.action_spec, in_keys=OBS_KEYS, net=net)
+
+
+def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModule) -> tuple[TensorDictSequential, EGreedyModule]:
+    """The acting policy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
+
+    Under ``ExplorationType.DETERMINISTIC`` (evaluation) the ε-greedy step passes the greedy
+    action through, so the same policy serves collection and evaluation.
+    """
+    x = run.exploration
+    egreedy = EGreedyModule(env.action_spec, eps_init=x.eps_start, eps_end=x.eps_end,
+                            annealing_num_steps=x.anneal_frames)
+    return TensorDictSequential(actor, egreedy), egreedy
+
+
+def make_loss(run: RunConfig, net: torch.nn.Module) -> D3QNLoss:
+    """Double dueling DQN loss on n-step transitions, with its target network."""
+    t = run.train
+    return D3QNLoss(net, OBS_KEYS, gamma=t.gamma, double=True, compile=t.compile_loss)
+
+
+def make_optimizer(run: RunConfig, net: torch.nn.Module) -> torch.optim.Optimizer:
+    """Adam; fused (one kernel for all parameters, ~4x cheaper than the per-tensor loop on CPU)."""
+    return torch.optim.Adam(net.parameters(), lr=run.train.lr, fused=True)
+
+
+def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None
+                ) -> tuple[TensorDictReplayBuffer, Transform | None]:
+    """The replay buffer: n-step returns at sample time, then the intrinsic bonus (ICM/RE3).
+
+    Returns the buffer and the intrinsic-reward transform (``None`` without a bonus).
+    """
+    t = run.train
+    one_step = ONE_STEP_KEY if uses_one_step_successor(run) else None
+    transform: Transform = NStepReturn(t.n_step, t.gamma, OBS_KEYS, one_step_key=one_step)
+    intrinsic = None
+    if bonus is not None:
+        intrinsic = make_intrinsic_transform(run, bonus, list(OBS_KEYS), frames or (lambda: 0))
+        transform = Compose(transform, intrinsic)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_size, device=run.device),
+                                    batch_size=t.batch_size, transform=transform)
+    return buffer, intrinsic
+
+
+def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Collector:
+    """A single-process collector of ``num_envs x steps_per_batch`` frames per batch."""
+    t = run.train
+    return Collector(env, policy, frames_per_batch=t.num_envs * t.steps_per_batch, total_frames=-1,
+                     device=run.device, auto_register_policy_transforms=False)
+
+
+__all__ = ["OBS_KEYS", "STORED_KEYS", "crowd_config", "make_actor", "make_buffer", "make_collector", "make_env",
+           "make_exploration", "make_loss", "make_optimizer"]
