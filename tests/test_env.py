@@ -1,18 +1,15 @@
-"""CrowdNavEnv (TorchRL) and the Gymnasium wrapper."""
+"""CrowdNavEnv (TorchRL); the Gymnasium face is tested in ``test_gym_face.py``."""
 
 from __future__ import annotations
 
 import math
 
-import gymnasium as gym
 import pytest
 import torch
-from gymnasium.utils.env_checker import check_env
 from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-import crowdrl  # noqa: F401  (registers the Gymnasium ids)
 from crowdrl.envs import CrowdNavEnv, RobotCentric, robot_centric
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
@@ -132,39 +129,6 @@ def test_one_hot_actions_are_accepted():
     ref.reset()
     out2 = ref._step(TensorDict({"action": torch.full((2,), 5)}, batch_size=[2]))
     torch.testing.assert_close(out["robot"], out2["robot"])
-
-
-# --------------------------------------------------------------------------- Gymnasium
-@pytest.mark.parametrize("env_id", ["crowdrl/CircleCrossing-v0", "crowdrl/SquareCrossing-v0"])
-def test_gymnasium_env_checker(env_id):
-    env = gym.make(env_id)
-    check_env(env.unwrapped, skip_render_check=True)
-    obs, info = env.reset(seed=0)
-    assert obs["robot"].shape == (9,) and obs["humans"].shape == (10, 5)
-    obs, reward, terminated, truncated, info = env.step(0)
-    assert isinstance(reward, float) and info["event"] in ("running", "success", "collision", "timeout")
-
-
-def test_gymnasium_matches_batched_env():
-    genv = gym.make("crowdrl/SquareCrossing-v0", split="test").unwrapped
-    obs, _ = genv.reset(seed=4, options={"episode_id": 2})
-    tenv = CrowdNavEnv("square", num_envs=3, split="test", seed=4)
-    td = tenv.reset()
-    torch.testing.assert_close(torch.as_tensor(obs["humans"]), td["humans"][2])
-    for a in (3, 40, 80):
-        obs, r, *_ = genv.step(a)
-        td["action"] = torch.full((3,), a)
-        td = tenv.step(td)
-        assert r == pytest.approx(td["next", "reward"][2].item(), abs=1e-6)
-        td = td["next"]
-    torch.testing.assert_close(torch.as_tensor(obs["robot"]), td["robot"][2])
-
-
-def test_gymnasium_rejects_bad_action():
-    env = gym.make("crowdrl/CircleCrossing-v0").unwrapped
-    env.reset(seed=0)
-    with pytest.raises(ValueError, match="action"):
-        env.step(81)
 
 
 def test_env_runs_in_a_torchrl_collector_with_auto_reset():

@@ -14,7 +14,7 @@ def register_gym_envs() -> None:
         if env_id not in gym.registry:
             gym.register(
                 id=env_id,
-                entry_point="crowdrl.envs.gym_env:CrowdNavGymEnv",
+                entry_point="crowdrl.gym_env:CrowdNavGymEnv",
                 kwargs={"scenario": scenario},
                 max_episode_steps=None,
             )

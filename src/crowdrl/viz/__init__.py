@@ -1,6 +1,7 @@
-"""Rendering: episode PNG summaries, animated GIFs, learning curves."""
+"""Rendering: episode PNG summaries, animated GIFs, single RGB frames, learning curves."""
 
 from crowdrl.viz.curves import plot_learning_curves
+from crowdrl.viz.frame import render_frame
 from crowdrl.viz.trajectory import (
     TIME_STAMP_GID,
     Trajectory,
@@ -8,4 +9,5 @@ from crowdrl.viz.trajectory import (
     plot_trajectory,
 )
 
-__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "plot_learning_curves", "TIME_STAMP_GID"]
+__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "plot_learning_curves", "render_frame",
+           "TIME_STAMP_GID"]

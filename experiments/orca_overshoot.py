@@ -1,0 +1,97 @@
+"""How far RVO2's float32 ORCA overshoots the max speed, by crowd size.
+
+    python experiments/orca_overshoot.py [--scenes 3000] [--json]   # needs pyrvo (`make install`)
+
+For N = 5, 10, 20, 30, 50 agents: random scenes (positions uniform in a 10 m square, radius
+0.31 m as the humans' ORCA radius, random current velocities and goals, max speed 1 m/s, the
+humans' ORCA parameters), fixed seeds. Prints the largest speed returned by our float32 ORCA
+(:func:`crowdrl.sim.orca.orca_velocities`), by pyrvo's RVO2 (float32 C++) and by our float64
+ORCA, with the number of agents above 1 m/s and above 1.01 m/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from crowdrl.sim.orca import orca_velocities
+
+SIZES = (5, 10, 20, 30, 50)
+PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+LIMITS = {"over": 1.0 + 1e-6, "over_1.01": 1.01}  # above the limit beyond float32 rounding; by 1 %+
+
+
+def random_scene(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+    """``n`` agents in a 10 m square, moving at random, each heading to a random goal (float32)."""
+    pos = rng.uniform(-5, 5, (n, 2))
+    speed, ang = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
+    vel = np.stack((speed * np.cos(ang), speed * np.sin(ang)), -1)
+    pref = rng.uniform(-5, 5, (n, 2)) - pos
+    norm = np.linalg.norm(pref, axis=-1, keepdims=True)
+    pref = np.where(norm > 1, pref / np.maximum(norm, 1e-9), pref)
+    f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
+    return {"positions": f32(pos), "velocities": f32(vel), "pref_velocities": f32(pref),
+            "radius": f32(np.full(n, 0.31)), "max_speed": f32(np.ones(n))}
+
+
+def rvo2_velocities(scene: dict[str, np.ndarray]) -> np.ndarray:
+    """One RVO2 ``doStep`` through pyrvo: the new velocities ``[n, 2]``."""
+    import pyrvo
+
+    ts, nd, mn, th = (PARAMS[k] for k in ("time_step", "neighbor_dist", "max_neighbors", "time_horizon"))
+    sim = pyrvo.RVOSimulator(ts, nd, mn, th, 5.0, 0.3, 1.0)
+    for p, v, r, m in zip(scene["positions"], scene["velocities"], scene["radius"], scene["max_speed"]):
+        sim.add_agent(tuple(map(float, p)), nd, mn, th, 5.0, float(r), float(m), tuple(map(float, v)))
+    for i, pv in enumerate(scene["pref_velocities"]):
+        sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
+    sim.do_step()
+    return np.array([sim.get_agent_velocity(i).to_tuple() for i in range(len(scene["positions"]))])
+
+
+def measure(n: int, scenes: int, seed: int) -> dict[str, float | int]:
+    """Largest speed and agents above the limits over ``scenes`` random scenes of ``n`` agents."""
+    rng = np.random.default_rng(seed)
+    batch = [random_scene(rng, n) for _ in range(scenes)]
+    stacked = {k: np.stack([s[k] for s in batch]) for k in batch[0]}
+    speeds = {}
+    for name, dtype in (("ours_f32", torch.float32), ("ours_f64", torch.float64)):
+        t = {k: torch.as_tensor(v).to(dtype) for k, v in stacked.items()}
+        v = orca_velocities(**t, **PARAMS)
+        speeds[name] = torch.linalg.vector_norm(v.double(), dim=-1).numpy()
+    speeds["rvo2"] = np.stack([np.linalg.norm(rvo2_velocities(s), axis=-1) for s in batch])
+    out: dict[str, float | int] = {"N": n, "scenes": scenes, "seed": seed}
+    for name, s in speeds.items():
+        out[f"max_{name}"] = float(s.max())
+        for label, limit in LIMITS.items():
+            out[f"{label}_{name}"] = int((s > limit).sum())
+    return out
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, float | int]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", type=int, default=3000, help="random scenes per crowd size")
+    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    args = parser.parse_args(argv)
+    if args.scenes < 1:
+        parser.error(f"--scenes must be >= 1, got {args.scenes}")
+    torch.set_num_threads(1)
+    rows = [measure(n, args.scenes, seed=1000 + n) for n in SIZES]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return rows
+    agents = lambda r: r["N"] * r["scenes"]  # noqa: E731
+    print(f"max speed returned (limit 1 m/s) over {args.scenes} scenes per N; "
+          "in brackets: agents above 1 m/s / above 1.01 m/s")
+    print(f"{'N':>3} {'agents':>7}  {'ours float32':>20}  {'RVO2 (pyrvo)':>20}  {'ours float64':>20}")
+    for r in rows:
+        cells = [f"{r[f'max_{k}']:.4f} ({r[f'over_{k}']}/{r[f'over_1.01_{k}']})"
+                 for k in ("ours_f32", "rvo2", "ours_f64")]
+        print(f"{r['N']:>3} {agents(r):>7}  " + "  ".join(f"{c:>20}" for c in cells))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
