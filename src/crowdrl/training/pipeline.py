@@ -110,3 +110,50 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
         animate_trajectory(traj, run_dir / f"test_case{record_episode}.gif")
     atomic_write_bytes(run_dir / "eval.json", json.dumps(out, indent=1).encode())
     return out
+
+
+BASELINES = ("orca",)
+
+
+def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = None, scenario: str | None = None,
+                  seed: int = TEST_SEED, episodes: int = 1000, num_humans: int | None = None, batch: int = EVAL_BATCH,
+                  record_episode: int | None = None, device: str = "cpu") -> tuple[dict[str, Any], Trajectory | None]:
+    """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
+    test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
+    recorded trajectory. Bad names and values raise ``ValueError`` naming the argument."""
+    from dataclasses import replace
+
+    from crowdrl.evaluation import evaluate_orca
+    from crowdrl.evaluation.report import eval_record
+    from crowdrl.sim.config import SCENARIOS, CrowdConfig
+
+    if (checkpoint is None) == (policy is None):
+        raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")
+    if policy is not None and policy not in BASELINES:
+        raise ValueError(f"policy: unknown baseline {policy!r}; allowed: {', '.join(BASELINES)}")
+    if scenario is not None and scenario not in SCENARIOS:
+        raise ValueError(f"env: unknown scenario {scenario!r}; allowed: {', '.join(SCENARIOS)}")
+    for name, value, low in (("eval.episodes", episodes, 1), ("eval.seed", seed, 0), ("eval.batch", batch, 1)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
+    if num_humans is not None and not (isinstance(num_humans, int) and num_humans >= 1):
+        raise ValueError(f"eval.num_humans: must be an integer >= 1 or null, got {num_humans!r}")
+    if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
+        raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
+    if policy == "orca":
+        cfg = CrowdConfig(scenario=scenario or "circle")
+        cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
+        metrics, traj = evaluate_orca(cfg, seed=seed, episodes=episodes, batch=batch, device=device,
+                                      record_episode=record_episode)
+        return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca"), traj
+    run, net, data = load_trained_network(checkpoint)
+    if device != run.device:
+        run = replace(run, device=device)
+    net.to(device)
+    scenario = scenario or run.env.scenario
+    metrics, traj = evaluate_network(run, net, scenario=scenario, seed=seed, episodes=episodes, num_humans=num_humans,
+                                     record_episode=record_episode, batch=batch)
+    record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}",
+                         checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
+                         train_scenario=run.env.scenario, train_seed=run.seed)
+    return record, traj

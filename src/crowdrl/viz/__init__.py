@@ -2,12 +2,14 @@
 
 from crowdrl.viz.curves import plot_learning_curves
 from crowdrl.viz.frame import render_frame
+from crowdrl.viz.results import ema, plot_intervals, plot_seed_curves
 from crowdrl.viz.trajectory import (
     TIME_STAMP_GID,
     Trajectory,
     animate_trajectory,
+    plot_side_by_side,
     plot_trajectory,
 )
 
-__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "plot_learning_curves", "render_frame",
-           "TIME_STAMP_GID"]
+__all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "plot_learning_curves",
+           "render_frame", "ema", "plot_seed_curves", "plot_intervals", "TIME_STAMP_GID"]

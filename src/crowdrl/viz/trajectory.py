@@ -28,7 +28,7 @@ from matplotlib.patches import Circle
 
 from crowdrl.evaluation.trajectory import Trajectory
 
-__all__ = ["Trajectory", "plot_trajectory", "animate_trajectory", "TIME_STAMP_GID"]
+__all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "TIME_STAMP_GID"]
 
 #: ``gid`` given to every time-stamp text artist in :func:`plot_trajectory` (lets callers
 #: and tests find them among the other texts).
@@ -116,17 +116,8 @@ def _heading_segment(center: np.ndarray, heading: float, radius: float) -> np.nd
 # ----------------------------------------------------------------------------- static plot
 
 
-def plot_trajectory(
-    traj: Trajectory, path: PathLike | None = None, *, title: str | None = None
-) -> Figure:
-    """Draw the whole episode in one figure; save it as PNG to ``path`` if given.
-
-    Paths are lines; agents are drawn as circles of their true radius every 5 s (and at the
-    final state), each labelled with its time in seconds, so relative timing — who was where
-    when — can be read off directly. Time-stamp texts carry ``gid == TIME_STAMP_GID``.
-    """
-    fig = _new_figure((7.0, 7.6))
-    ax = fig.add_subplot()
+def _draw_episode(ax: Axes, traj: Trajectory) -> None:
+    """Paths, time-stamped circles, headings and the goal of one episode on ``ax``."""
     colors = _human_colors(traj.num_humans)
     stamps = _stamp_indices(traj)
 
@@ -159,6 +150,9 @@ def plot_trajectory(
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, lw=0.4, alpha=0.4)
+
+
+def _episode_legend(fig: Figure, traj: Trajectory) -> None:
     handles = [
         Line2D([], [], color=ROBOT_COLOR, lw=2.0, label="robot"),
         Line2D([], [], marker="*", ms=12, color=GOAL_COLOR, mec="black", ls="none",
@@ -170,6 +164,40 @@ def plot_trajectory(
     ]
     fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=8,
                frameon=False)
+
+
+def plot_side_by_side(trajs: list[Trajectory], titles: list[str], path: PathLike | None = None, *,
+                      suptitle: str | None = None) -> Figure:
+    """The same test case under several policies, one panel each (the paper's Fig. 1/3 style),
+    with 5-s time stamps; saved as PNG to ``path`` if given."""
+    if not trajs or len(trajs) != len(titles):
+        raise ValueError("plot_side_by_side needs one title per trajectory and at least one trajectory")
+    fig = _new_figure((6.2 * len(trajs), 6.8))
+    for k, (traj, title) in enumerate(zip(trajs, titles)):
+        ax = fig.add_subplot(1, len(trajs), k + 1)
+        _draw_episode(ax, traj)
+        ax.set_title(_title(traj, title))
+    _episode_legend(fig, trajs[0])
+    if suptitle:
+        fig.suptitle(suptitle)
+    if path is not None:
+        _atomic_write(Path(path), ".png", lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    return fig
+
+
+def plot_trajectory(
+    traj: Trajectory, path: PathLike | None = None, *, title: str | None = None
+) -> Figure:
+    """Draw the whole episode in one figure; save it as PNG to ``path`` if given.
+
+    Paths are lines; agents are drawn as circles of their true radius every 5 s (and at the
+    final state), each labelled with its time in seconds, so relative timing — who was where
+    when — can be read off directly. Time-stamp texts carry ``gid == TIME_STAMP_GID``.
+    """
+    fig = _new_figure((7.0, 7.6))
+    ax = fig.add_subplot()
+    _draw_episode(ax, traj)
+    _episode_legend(fig, traj)
     if (full_title := _title(traj, title)) is not None:
         ax.set_title(full_title)
 

@@ -1,0 +1,71 @@
+"""Evaluate a trained checkpoint or a baseline on fixed test cases (Hydra entry point).
+
+    python experiments/evaluate.py checkpoint=runs/<folder>                  # its scenario, 1000 cases
+    python experiments/evaluate.py checkpoint=runs/<folder> env=square       # zero-shot on square
+    python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
+    python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
+
+Prints a Markdown table and writes ``eval.json`` / ``eval.csv`` (and a PNG and GIF of
+``eval.record_episode``) into its Hydra run folder, whose path it prints. The same cases give the
+same numbers whatever ``eval.batch``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+os.environ.setdefault("WANDB_MODE", "offline")
+
+CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+KEYS = {"checkpoint", "policy", "env", "eval", "threads", "device"}
+EVAL_KEYS = {"seed", "episodes", "num_humans", "batch", "record_episode"}
+
+
+@hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    import torch
+
+    from crowdrl.evaluation.report import markdown_table, write_records
+    from crowdrl.training import CheckpointError
+    from crowdrl.training.pipeline import evaluate_spec
+
+    out = Path(HydraConfig.get().runtime.output_dir)
+    c = OmegaConf.to_container(cfg, resolve=True)
+    unknown = sorted(set(c) - KEYS) + sorted(f"eval.{k}" for k in set(c["eval"]) - EVAL_KEYS)
+    try:
+        if unknown:
+            raise ValueError(f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(KEYS))}, "
+                             f"eval.{{{','.join(sorted(EVAL_KEYS))}}}")
+        if c["device"] != "cpu" and not (str(c["device"]).startswith("cuda") and torch.cuda.is_available()):
+            raise ValueError(f"device: {c['device']!r} is not available here (cuda available: {torch.cuda.is_available()})")
+        torch.set_num_threads(int(c["threads"]))
+        scenario = (c.get("env") or {}).get("scenario")  # env=<name> selects conf/env/<name>.yaml
+        e = c["eval"]
+        record, traj = evaluate_spec(checkpoint=c["checkpoint"], policy=c["policy"], scenario=scenario, seed=e["seed"],
+                                     episodes=e["episodes"], num_humans=e["num_humans"], batch=e["batch"],
+                                     record_episode=e["record_episode"], device=c["device"])
+    except (ValueError, CheckpointError) as exc:
+        print(f"evaluate.py: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    write_records(out, [record])
+    if traj is not None:
+        from crowdrl.viz import animate_trajectory, plot_trajectory
+
+        name = f"{record['scenario']}_case{e['record_episode']}"
+        plot_trajectory(traj, out / f"{name}.png", title=f"{record['policy']}, {record['scenario']} test case "
+                                                          f"{e['record_episode']}")
+        animate_trajectory(traj, out / f"{name}.gif")
+    print(f"{record['episodes']} {record['scenario']} test cases, test seed {record['seed']}")
+    print(markdown_table([record]))
+    print(f"eval folder: {out.resolve()}")
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,81 @@
+"""What an evaluation reports: the ``eval.json`` record, its CSV row and a Markdown table."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterable
+
+from crowdrl.evaluation.metrics import EpisodeMetrics
+from crowdrl.files import atomic_write_bytes
+
+# eval.json keys, in table order, and the EpisodeMetrics field each comes from
+REPORT_FIELDS = {
+    "success_rate": "success_rate",
+    "collision_rate": "collision_rate",
+    "timeout_rate": "timeout_rate",
+    "navigation_time": "navigation_time",
+    "average_return": "average_return",
+    "discomfort_frequency": "discomfort_frequency",
+    "min_separation": "discomfort_min_separation",
+}
+HEADERS = {"success_rate": "success", "collision_rate": "collision", "timeout_rate": "timeout",
+           "navigation_time": "nav time (s)", "average_return": "avg return", "discomfort_frequency": "discomfort",
+           "min_separation": "min sep. (m)"}
+
+# The paper's rows (upstream logs, 1000 cases, one seed): return, success, collision, navigation time.
+PAPER = {
+    "egreedy": {"circle": (0.6312, 0.940, 0.060, 11.318), "square": (0.6396, 0.948, 0.052, 10.545)},
+    "noisy": {"circle": (0.5423, 0.937, 0.063, 13.965), "square": (0.5566, 0.921, 0.078, 12.742)},
+    "dropout": {"circle": (0.6529, 0.959, 0.041, 11.899), "square": (0.6484, 0.952, 0.048, 11.148)},
+    "icm": {"circle": (0.6680, 0.968, 0.032, 11.366), "square": (0.6868, 0.970, 0.030, 10.729)},
+    "re3": {"circle": (0.6820, 0.971, 0.029, 11.012), "square": (0.6749, 0.958, 0.042, 10.221)},
+    "orca": {"circle": (0.3315, 0.769, 0.222, 13.880), "square": (0.4417, 0.840, 0.151, 12.856)},
+}
+
+
+def paper_value(method: str, scenario: str, key: str) -> float:
+    """The paper's value of ``key`` (average_return, success_rate, collision_rate, navigation_time)."""
+    row = PAPER.get(method, {}).get(scenario)
+    order = ("average_return", "success_rate", "collision_rate", "navigation_time")
+    return row[order.index(key)] if row is not None and key in order else math.nan
+
+
+def eval_record(metrics: EpisodeMetrics, *, scenario: str, seed: int, policy: str, **extra: Any) -> dict[str, Any]:
+    """The ``eval.json`` record: the seven metrics plus ``episodes``, ``seed``, ``scenario``, ``policy``."""
+    out = {key: getattr(metrics, field) for key, field in REPORT_FIELDS.items()}
+    return {**out, "episodes": metrics.episodes, "seed": seed, "scenario": scenario, "policy": policy, **extra}
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return "–" if math.isnan(value) else f"{value:.4f}" if abs(value) < 1 else f"{value:.3f}"
+    return str(value)
+
+
+def markdown_table(records: Iterable[dict[str, Any]], label_keys: tuple[str, ...] = ("policy", "scenario")) -> str:
+    """One row per record: its labels, then the seven metrics."""
+    records = list(records)
+    head = [*label_keys, *(HEADERS[k] for k in REPORT_FIELDS)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in records:
+        lines.append("| " + " | ".join([*(str(r.get(k, "")) for k in label_keys),
+                                          *(_fmt(r[k]) for k in REPORT_FIELDS)]) + " |")
+    return "\n".join(lines)
+
+
+def write_records(folder: Path | str, records: list[dict[str, Any]], stem: str = "eval") -> tuple[Path, Path]:
+    """``<stem>.json`` (one record, or a list) and ``<stem>.csv`` in ``folder``, written atomically."""
+    folder = Path(folder)
+    payload = records[0] if len(records) == 1 else records
+    json_path, csv_path = folder / f"{stem}.json", folder / f"{stem}.csv"
+    atomic_write_bytes(json_path, json.dumps(payload, indent=1).encode())
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(records[0]))
+    writer.writeheader()
+    writer.writerows(records)
+    atomic_write_bytes(csv_path, buf.getvalue().encode())
+    return json_path, csv_path
