@@ -15,20 +15,27 @@ from matplotlib.figure import Figure
 PAPER_SMOOTHING = 0.99  # the paper's exponential smoothing of training curves
 
 
-def ema(values: Sequence[float], smoothing: float = PAPER_SMOOTHING) -> np.ndarray:
+def ema(values: Sequence[float], smoothing: float = PAPER_SMOOTHING, counts: Sequence[float] | None = None
+        ) -> np.ndarray:
     """Exponential moving average with bias correction (TensorBoard's smoothing): ``smoothing = 0``
-    returns the values, ``0.99`` the paper's curves. NaNs are skipped (the last value carries on).
+    returns the values, ``0.99`` the paper's per-episode curves. When point ``i`` is the mean of
+    ``counts[i]`` episodes, it is weighted as that many episodes (``smoothing ** counts[i]``), so
+    the curve is the per-episode EMA whatever the logging period. NaNs are skipped.
 
     >>> ema([1.0, 3.0], 0.5).tolist()
     [1.0, 2.333333333333333]
     """
     if not 0.0 <= smoothing < 1.0:
         raise ValueError(f"smoothing must lie in [0, 1), got {smoothing}")
+    counts = np.ones(len(values)) if counts is None else np.asarray(counts, dtype=np.float64)
+    if counts.shape != (len(values),) or bool((counts < 0).any()):
+        raise ValueError("counts must hold one non-negative number per value")
     out, acc, weight = [], 0.0, 0.0
-    for v in values:
+    for v, n in zip(values, counts):
         if not np.isnan(v):
-            acc = smoothing * acc + (1 - smoothing) * v
-            weight = smoothing * weight + (1 - smoothing)
+            keep = smoothing ** n
+            acc = keep * acc + (1 - keep) * v
+            weight = keep * weight + (1 - keep)
         out.append(acc / weight if weight > 0 else np.nan)
     return np.asarray(out, dtype=np.float64)
 
@@ -57,18 +64,19 @@ def plot_seed_curves(runs: dict[str, list[list[dict[str, Any]]]], path: Path | s
     min-max band. Saved as PNG."""
     fig = Figure(figsize=(11, 4.2))
     FigureCanvasAgg(fig)
-    panels = [("train", "train/success_rate", f"training success (EMA {smoothing})", smoothing),
-              ("val", "val/success_rate", "validation success (greedy, 100 cases)", 0.0)]
+    panels = [("train", "train/success_rate", f"training success (per-episode EMA {smoothing})", smoothing),
+              ("val", "val/success_rate", "validation success (greedy)", 0.0)]
     colors = colormaps["tab10"]
     for p, (kind, key, label, s) in enumerate(panels):
         ax = fig.add_subplot(1, 2, p + 1)
         for k, (method, seeds) in enumerate(runs.items()):
             curves = []
             for rows in seeds:
-                pts = [(r["frames"], r[key]) for r in rows if r.get("kind") == kind and key in r]
+                pts = [(r["frames"], r[key], r.get("episodes", 0)) for r in rows if r.get("kind") == kind and key in r]
                 if pts:
-                    x, y = np.array(pts, dtype=np.float64).T
-                    curves.append((x, ema(y, s)))
+                    x, y, episodes = np.array(pts, dtype=np.float64).T
+                    counts = np.diff(episodes, prepend=0.0)  # episodes behind each logged rate
+                    curves.append((x, ema(y, s, counts)))
             if not curves:
                 continue
             grid = np.unique(np.concatenate([x for x, _ in curves]))
