@@ -1,0 +1,206 @@
+"""experiments/evaluate.py and experiments/reproduce.py end to end (as subprocesses), the results
+statistics and figures, and the SLURM launcher config composing with a sweep."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
+REPRODUCE = [sys.executable, str(ROOT / "experiments" / "reproduce.py")]
+TINY = ["budget=smoke", "variants=[egreedy,re3]", "seeds=[0,1]", "episodes=6", "reps=200", "jobs=2"]
+EVAL_KEYS = {"success_rate", "collision_rate", "timeout_rate", "navigation_time", "average_return",
+             "discomfort_frequency", "min_separation", "episodes", "seed", "scenario"}
+
+
+def run(cmd: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "offline"}
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=env)
+
+
+@pytest.fixture(scope="module")
+def reproduced(tmp_path_factory) -> Path:
+    """A tiny reproduce.py run: 2 variants x 2 seeds at the smoke budget, 6 test cases per scenario."""
+    out = tmp_path_factory.mktemp("repro") / "results"
+    proc = run([*REPRODUCE, *TINY, f"out={out}"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+def test_reproduce_writes_the_table_with_intervals_and_the_figures(reproduced):
+    files = {p.name for p in reproduced.iterdir()}
+    assert {"table.md", "table.json", "table.csv", "curves.png", "intervals.png", "side_by_side.png",
+            "egreedy_s0_circle_case0.gif", "manifest.json"} <= files
+    table = json.loads((reproduced / "table.json").read_text())
+    rows = {(r["method"], r["scenario"]): r for r in table["rows"]}
+    assert set(rows) == {(m, s) for m in ("egreedy", "re3", "orca") for s in ("circle", "square")}
+    for (method, scenario), r in rows.items():
+        per_seed = r["success_rate_per_seed"]
+        assert len(per_seed) == (1 if method == "orca" else 2)
+        assert r["success_rate"] == pytest.approx(np.mean(per_seed))
+        assert r["success_rate_lo"] <= r["success_rate"] <= r["success_rate_hi"]
+        paper = {"egreedy": 0.940, "re3": 0.971, "orca": 0.769}[method] if scenario == "circle" else None
+        if paper is not None:
+            assert r["success_rate_paper"] == paper
+    assert 0.0 <= rows[("re3", "circle")]["p_improve"] <= 1.0
+    assert "p_improve" not in rows[("egreedy", "circle")]
+    # every cell of the table comes from the runs' own eval.json files
+    for variant in ("egreedy", "re3"):
+        for seed in (0, 1):
+            for scenario in ("circle", "square"):
+                rec = json.loads((reproduced / "runs" / f"{variant}-s{seed}" / f"eval-{scenario}" / "eval.json").read_text())
+                assert EVAL_KEYS <= set(rec) and rec["episodes"] == 6 and rec["scenario"] == scenario
+    md = (reproduced / "table.md").read_text()
+    assert "## circle" in md and "## square" in md and "(0.940)" in md
+
+
+def test_reproduce_rerun_trains_nothing_and_refuses_other_settings(reproduced):
+    stamp = (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns
+    proc = run([*REPRODUCE, *TINY, f"out={reproduced}"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "0 run(s) to train or finish, 4 already done" in proc.stdout
+    assert (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns == stamp
+    other = run([*REPRODUCE, *TINY[1:], "budget=demo", f"out={reproduced}"])
+    assert other.returncode == 2 and "budget" in other.stderr and "fresh out=" in other.stderr
+    fewer = run([*REPRODUCE, *[a for a in TINY if not a.startswith("episodes")], "episodes=5", f"out={reproduced}"])
+    assert fewer.returncode == 2 and "episodes" in fewer.stderr
+
+
+def test_reproduce_resumes_a_killed_run(tmp_path):
+    """SIGKILL the whole job tree once a checkpoint exists, rerun: the run finishes from it."""
+    out = tmp_path / "results"
+    args = ["budget=smoke", "variants=[egreedy]", "seeds=[3]", "episodes=4", "reps=100", "jobs=1",
+            "scenarios=[circle]", f"out={out}"]
+    proc = subprocess.Popen([*REPRODUCE, *args], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True, env={**os.environ, "WANDB_MODE": "offline"})
+    last = out / "runs" / "egreedy-s3" / "checkpoints" / "last.pt"
+    deadline = time.time() + 300
+    while not last.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert last.exists(), "the run never wrote a checkpoint"
+    status = json.loads((out / "runs" / "egreedy-s3" / "status.json").read_text())
+    assert status["state"] == "running"  # killed mid-training, not finished
+    again = run([*REPRODUCE, *args])
+    assert again.returncode == 0, again.stderr[-2000:]
+    summary = json.loads((out / "runs" / "egreedy-s3" / "summary.json").read_text())
+    assert summary["frames"] == 256  # the smoke budget, not more: the rerun resumed, it did not restart on top
+    assert json.loads((out / "runs" / "egreedy-s3" / "status.json").read_text())["state"] == "completed"
+    rows = [json.loads(line) for line in (out / "runs" / "egreedy-s3" / "scalars.jsonl").read_text().splitlines()]
+    val_frames = [r["frames"] for r in rows if r["kind"] == "val"]
+    assert val_frames == sorted(set(val_frames))  # no validation logged twice
+    assert (out / "table.md").exists()
+
+
+@pytest.mark.parametrize("override, key", [
+    ("variants=[egreedy,bogus]", "variants"), ("seeds=[-1]", "seeds"), ("budget=huge", "budget"),
+    ("episodes=0", "episodes"), ("scenarios=[moon]", "scenarios"), ("jobs=0", "jobs"), ("launcher=ssh", "launcher"),
+])
+def test_reproduce_bad_settings_fail_naming_the_key(tmp_path, override, key):
+    proc = run([*REPRODUCE, *TINY, override, f"out={tmp_path / 'r'}"], timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().startswith(f"reproduce.py: {key}"), proc.stderr[-1000:]
+    assert not (tmp_path / "r" / "manifest.json").exists()
+
+
+def test_evaluate_cli_orca_on_both_scenarios(tmp_path):
+    for scenario in ("circle", "square"):
+        folder = tmp_path / scenario
+        proc = run([*EVALUATE, "policy=orca", f"env={scenario}", "eval.episodes=8", "eval.batch=5",
+                    f"hydra.run.dir={folder}"])
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        rec = json.loads((folder / "eval.json").read_text())
+        assert EVAL_KEYS <= set(rec) and rec["scenario"] == scenario and rec["episodes"] == 8
+        assert (folder / "eval.csv").exists() and (folder / f"{scenario}_case0.png").exists()
+        assert f"| orca | {scenario} |" in proc.stdout and str(folder) in proc.stdout
+
+
+def test_evaluate_cli_on_a_checkpoint_equals_its_training_test(reproduced, tmp_path):
+    run_dir = reproduced / "runs" / "re3-s1"
+    proc = run([*EVALUATE, f"checkpoint={run_dir}", "eval.episodes=6", "eval.batch=4", "eval.record_episode=null",
+                f"hydra.run.dir={tmp_path / 'e'}"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rec = json.loads((tmp_path / "e" / "eval.json").read_text())
+    trained = json.loads((run_dir / "eval-circle" / "eval.json").read_text())
+    for key in ("success_rate", "collision_rate", "timeout_rate", "average_return", "discomfort_frequency"):
+        assert rec[key] == trained[key], key
+    assert rec["policy"] == "sgd3qn+re3" and rec["train_seed"] == 1
+
+
+@pytest.mark.parametrize("args, key", [
+    (["policy=orcx"], "policy"), (["policy=orca", "eval.episodes=0"], "eval.episodes"),
+    (["policy=orca", "eval.seed=-2"], "eval.seed"), ([], "give exactly one"),
+    (["policy=orca", "eval.bogus=1"], "eval.bogus"),  # Hydra's own refusal (exit 1)
+    (["policy=orca", "env=moon"], "env/moon"),  # likewise
+])
+def test_evaluate_cli_bad_input_names_it(tmp_path, args, key):
+    proc = run([*EVALUATE, *args, f"hydra.run.dir={tmp_path / 'e'}"], timeout=120)
+    assert proc.returncode in (1, 2) and key in proc.stderr, proc.stderr[-1000:]
+    assert not (tmp_path / "e" / "eval.json").exists()
+
+
+def test_evaluate_cli_rejects_truncated_and_mismatched_checkpoints(reproduced, tmp_path):
+    import torch
+
+    best = reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt"
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(best.read_bytes()[:1000])
+    proc = run([*EVALUATE, f"checkpoint={cut}", f"hydra.run.dir={tmp_path / 'e1'}"], timeout=120)
+    assert proc.returncode == 2 and "cut.pt" in proc.stderr and "truncated" in proc.stderr
+    data = torch.load(best, weights_only=False)
+    data["net"] = {k: v[..., :1] if v.dim() else v for k, v in data["net"].items()}  # wrong shapes
+    torch.save(data, tmp_path / "shape.pt")
+    proc = run([*EVALUATE, f"checkpoint={tmp_path / 'shape.pt'}", f"hydra.run.dir={tmp_path / 'e2'}"], timeout=120)
+    assert proc.returncode == 2 and "network shape does not match" in proc.stderr
+
+
+def test_slurm_launcher_composes_with_the_sweep():
+    """`train.py -m hydra/launcher=slurm ...` (what reproduce.py launcher=slurm runs) composes: the
+    submitit SLURM launcher with our settings, the run's overrides, no cluster needed."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from crowdrl.training.config import RunConfig
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["hydra/launcher=slurm", "preset=smoke", "exploration=re3",
+                                                       "seed=2", "hydra.sweep.dir=/tmp/x"],
+                      return_hydra_config=True)
+    assert "submitit" in cfg.hydra.launcher._target_ and "Slurm" in cfg.hydra.launcher._target_
+    assert cfg.hydra.launcher.timeout_min == 240 and cfg.hydra.launcher.cpus_per_task == 2
+    assert cfg.exploration.name == "re3" and cfg.preset == "smoke"
+
+
+def test_stats_intervals_and_probability_of_improvement():
+    from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
+
+    est = mean_interval({"a": np.array([0.8, 0.9, 1.0]), "b": np.array([0.5, np.nan, 0.7]), "c": np.array([0.4])})
+    mean, lo, hi = est["a"]
+    assert mean == pytest.approx(0.9) and 0.8 <= lo <= mean <= hi <= 1.0
+    assert est["b"][0] == pytest.approx(0.6)  # NaN seeds left out
+    assert est["c"] == (0.4, 0.4, 0.4)
+    assert probability_of_improvement(np.array([0.9, 0.95]), np.array([0.1, 0.2]))[0] == 1.0
+    assert probability_of_improvement(np.array([0.5, 0.5]), np.array([0.5, 0.5]))[0] == 0.5
+
+
+def test_ema_weights_each_point_by_its_episodes():
+    from crowdrl.viz import ema
+
+    assert ema([1.0, 3.0], 0.0).tolist() == [1.0, 3.0]
+    two_points = ema([1.0, 3.0], 0.5, counts=[1, 2])
+    per_episode = ema([1.0, 3.0, 3.0], 0.5)  # the second point stands for two episodes
+    assert two_points[-1] == pytest.approx(per_episode[-1])
+    assert math.isnan(ema([math.nan], 0.9)[0])
+    with pytest.raises(ValueError, match="smoothing"):
+        ema([1.0], 1.0)
