@@ -17,7 +17,7 @@ import hashlib
 import pytest
 import torch
 
-from crowdrl.sim import rng
+from crowdrl.sim import rng, scenarios
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.scenarios import SpawnError, initial_states
 
@@ -83,6 +83,18 @@ def test_episode_is_the_same_alone_or_in_a_batch(scenario, num_humans):
         torch.testing.assert_close(part.human_position, batch.human_position[ids], rtol=0, atol=0)
         torch.testing.assert_close(part.human_goal, batch.human_goal[ids], rtol=0, atol=0)
 
+
+@pytest.mark.parametrize("chunking", [dict(_MAX_PAIRS=1), dict(_MIN_CANDIDATES=10**6, _MAX_PAIRS=1 << 30)],
+                         ids=["one-round-per-chunk", "all-rounds-at-once"])
+def test_chunk_sizes_do_not_change_the_episodes(monkeypatch, chunking):
+    cfg = CrowdConfig(scenario="circle", num_humans=40)
+    keys = rng.episode_keys("train", 9, torch.arange(24))
+    expected = initial_states(cfg, keys)
+    for name, value in chunking.items():
+        monkeypatch.setattr(scenarios, name, value)
+    got = initial_states(cfg, keys)
+    torch.testing.assert_close(got.human_position, expected.human_position, rtol=0, atol=0)
+    torch.testing.assert_close(got.human_goal, expected.human_goal, rtol=0, atol=0)
 
 def test_crowded_but_possible_spawn_keeps_the_clearance():
     cfg = CrowdConfig(scenario="square", num_humans=64)
