@@ -24,6 +24,7 @@ GOAL_ROUNDS = 16  # candidates per new goal of a non-stop human; exhausting them
 # Chunk sizing of the spawn rejection rounds (speed only: the result does not depend on them).
 _CHUNK_HITS = 1.5  # a chunk holds this many expected valid candidates per searching episode
 _MIN_CANDIDATES = 512  # few episodes left: draw at least this many candidates in all
+_FIRST_DRAWS = 1 << 18  # uniforms of up to 16 first rounds drawn for every human at once (small batches)
 _MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 
 # Index tags keeping the purposes of random draws apart.
@@ -60,17 +61,20 @@ def _clear_of(points: Tensor, others: Tensor, valid_others: Tensor, min_dist: fl
 
 
 def _spawn_uniforms(
-    spawn_key: Tensor, human: int, first_round: int, rounds: int, components: tuple[int, ...], dtype: torch.dtype
+    spawn_key: Tensor, humans: Tensor | int, first_round: int, rounds: int, components: range, dtype: torch.dtype
 ) -> Tensor:
-    """Spawn draws of one human: rounds ``first_round ..`` of ``components``, ``[B, rounds, C]``.
+    """Spawn draws: rounds ``first_round ..`` of ``components``, ``[B, rounds, C]`` (``[B, H, rounds, C]``
+    for a tensor of ``humans [H]``).
 
     ``spawn_key [B]`` is ``rng.fold(episode_key, _TAG_SPAWN)``, folded once for every draw.
     """
     device = spawn_key.device
-    r = torch.arange(first_round, first_round + rounds, device=device).view(1, rounds, 1)
-    c = torch.tensor(components, device=device).view(1, 1, len(components))
-    index = (human * SPAWN_ROUNDS + r) * _SPAWN_COMPONENTS + c
-    return rng.uniform(spawn_key.view(-1, 1, 1), index, dtype=dtype)
+    r = torch.arange(first_round, first_round + rounds, device=device).view(rounds, 1)
+    c = torch.arange(components.start, components.stop, device=device)
+    if isinstance(humans, Tensor):
+        humans = humans.view(-1, 1, 1)
+    index = (humans * SPAWN_ROUNDS + r) * _SPAWN_COMPONENTS + c
+    return rng.uniform(spawn_key.view((-1,) + (1,) * index.dim()), index, dtype=dtype)
 
 
 def _first_valid(candidates: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
@@ -109,8 +113,16 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     goals = torch.zeros(B, N + 1, 2, dtype=dtype, device=device)
     positions[:, 0], goals[:, 0] = robot_pos, robot_goal
     spawn_key = rng.fold(episode_key, _TAG_SPAWN)  # rng.uniform(key, tag, i) == rng.uniform(fold(key, tag), i)
-    side_index = torch.arange(N, device=device) * (SPAWN_ROUNDS * _SPAWN_COMPONENTS) + 7  # round 0, component 7
-    u_side = rng.uniform(spawn_key.view(-1, 1), side_index, dtype=dtype)
+    humans = torch.arange(N, device=device)
+    # Small batches: the first rounds of every human in one draw [B, N, R0, 8], as per-human
+    # draws would cost more in call overhead than in arithmetic.
+    first_rounds = min(16, _FIRST_DRAWS // max(B * N * _SPAWN_COMPONENTS, 1))
+    chunk0 = None
+    if first_rounds:
+        chunk0 = _spawn_uniforms(spawn_key, humans, 0, first_rounds, range(_SPAWN_COMPONENTS), dtype)
+        u_side = chunk0[:, :, 0, 7]
+    else:
+        u_side = _spawn_uniforms(spawn_key, humans, 0, 1, range(7, 8), dtype)[:, :, 0, 0]
     side = torch.where(u_side > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [B, N, 1]
     accept = 1.0  # acceptance rate in the last placement's first chunk, sizing the next first chunk
 
@@ -121,23 +133,26 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
         # the nearest human decides (amin is exact; a NaN distance fails either way)
         return ok & (d[..., 1:].amin(-1) >= clearance) if d.shape[-1] > 1 else ok
 
-    def place(h: int, what: str, components: tuple[int, ...], make: Callable[[Tensor, Tensor], Tensor],
+    def place(h: int, what: str, components: range, make: Callable[[Tensor | slice, Tensor], Tensor],
               others: list[Tensor]) -> Tensor:
         """The first valid of ``make(episodes, uniforms)``'s candidates, ``[B, 2]``."""
         nonlocal accept
         result = torch.empty(B, 2, dtype=dtype, device=device)
-        searching = torch.arange(B, device=device)
+        episodes: Tensor | slice = slice(None)  # those still searching: all, then an index
+        A, first, rate = B, 0, accept
         agents = sum(o.shape[1] for o in others)
-        first, rate = 0, accept
-        while first < SPAWN_ROUNDS:
-            A = searching.shape[0]
-            rounds = _chunk_rounds(A, agents, rate, SPAWN_ROUNDS - first)
-            cand = make(searching, _spawn_uniforms(spawn_key[searching], h, first, rounds, components, dtype))
-            ok = clear(cand, others[0][searching])
+        while True:
+            if first == 0 and chunk0 is not None:
+                rounds, u = first_rounds, chunk0[:, h, :, components.start:components.stop]
+            else:
+                rounds = _chunk_rounds(A, agents, rate, SPAWN_ROUNDS - first)
+                u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, components, dtype)
+            cand = make(episodes, u)
+            ok = clear(cand, others[0][episodes])
             for extra in others[1:]:
-                ok = ok & clear(cand, extra[searching])
+                ok = ok & clear(cand, extra[episodes])
             pick, hit = _first_valid(cand, ok)
-            result[searching] = pick  # searching episodes overwrite it until they find one
+            result[episodes] = pick  # searching episodes overwrite it until they find one
             hits, valid = torch.stack((hit.sum(), ok.sum())).tolist()  # the chunk's one host sync
             rate = valid / max(A * rounds, 1)
             if first == 0:
@@ -145,23 +160,26 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
             first += rounds
             if hits == A:
                 return result
+            if first >= SPAWN_ROUNDS:
+                raise SpawnError(
+                    f"could not place the {what} of human {h} in {A - hits} episode(s) after "
+                    f"{SPAWN_ROUNDS} rejection rounds: the scenario is too crowded for its spawn clearance"
+                )
             # the episodes still searching, in order, without a further sync
-            searching = searching[torch.sort(hit.to(torch.uint8), stable=True).indices[: A - hits]]
-        raise SpawnError(
-            f"could not place the {what} of human {h} in {searching.shape[0]} episode(s) after "
-            f"{SPAWN_ROUNDS} rejection rounds: the scenario is too crowded for its spawn clearance"
-        )
+            keep = torch.sort(hit.to(torch.uint8), stable=True).indices[: A - hits]
+            episodes = keep if isinstance(episodes, slice) else episodes[keep]
+            A -= hits
 
     for h in range(N):
         placed_pos, placed_goals = positions[:, : h + 1], goals[:, : h + 1]
         if h < cfg.num_circle_humans:
-            start = place(h, "start", (0, 1, 2), lambda e, u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
+            start = place(h, "start", range(0, 3), lambda e, u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
                           [placed_pos, placed_goals])
             goal = -start
         else:
-            start = place(h, "start", (3, 4), lambda e, u: _square_points(cfg, side[e, h], u[..., 0], u[..., 1]),
+            start = place(h, "start", range(3, 5), lambda e, u: _square_points(cfg, side[e, h], u[..., 0], u[..., 1]),
                           [placed_pos])
-            goal = place(h, "goal", (5, 6), lambda e, u: _square_points(cfg, -side[e, h], u[..., 0], u[..., 1]),
+            goal = place(h, "goal", range(5, 7), lambda e, u: _square_points(cfg, -side[e, h], u[..., 0], u[..., 1]),
                          [placed_goals])
         positions[:, h + 1], goals[:, h + 1] = start, goal
 
