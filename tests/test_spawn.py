@@ -84,8 +84,11 @@ def test_episode_is_the_same_alone_or_in_a_batch(scenario, num_humans):
         torch.testing.assert_close(part.human_goal, batch.human_goal[ids], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("chunking", [dict(_MAX_PAIRS=1), dict(_MIN_CANDIDATES=10**6, _MAX_PAIRS=1 << 30)],
-                         ids=["one-round-per-chunk", "all-rounds-at-once"])
+@pytest.mark.parametrize(
+    "chunking",
+    [dict(_FIRST_DRAWS=0, _MAX_PAIRS=1), dict(_FIRST_DRAWS=0, _MIN_CANDIDATES=10**6, _MAX_PAIRS=1 << 30)],
+    ids=["one-round-per-chunk", "all-rounds-at-once"],
+)
 def test_chunk_sizes_do_not_change_the_episodes(monkeypatch, chunking):
     cfg = CrowdConfig(scenario="circle", num_humans=40)
     keys = rng.episode_keys("train", 9, torch.arange(24))
