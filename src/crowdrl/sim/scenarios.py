@@ -63,8 +63,8 @@ def _clear_of(points: Tensor, others: Tensor, valid_others: Tensor, min_dist: fl
 def _spawn_uniforms(
     spawn_key: Tensor, humans: Tensor | int, first_round: int, rounds: int, components: range, dtype: torch.dtype
 ) -> Tensor:
-    """Spawn draws: rounds ``first_round ..`` of ``components``, ``[B, rounds, C]`` (``[B, H, rounds, C]``
-    for a tensor of ``humans [H]``).
+    """Spawn draws of ``components``, rounds ``first_round ..``: ``[B, rounds, C]`` for one human,
+    ``[B, H, rounds, C]`` for ``humans [H]``.
 
     ``spawn_key [B]`` is ``rng.fold(episode_key, _TAG_SPAWN)``, folded once for every draw.
     """
