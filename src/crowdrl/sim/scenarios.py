@@ -2,8 +2,9 @@
 
 Every random number comes from :mod:`crowdrl.sim.rng`, keyed by the episode, so an episode is
 a pure function of (stream, seed, episode id), whatever the batch it is generated in.
-Rejection sampling is vectorised: each human draws ``SPAWN_ROUNDS`` candidates at once and
-takes the first valid one, in the order the reference simulator would have tried them.
+Rejection sampling is vectorised: each human tries up to ``SPAWN_ROUNDS`` candidates and takes
+the first valid one, in the order the reference simulator would have tried them; the rounds
+are evaluated in chunks sized to the observed acceptance rate, for the episodes still searching.
 """
 
 from __future__ import annotations
@@ -19,11 +20,18 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.state import CrowdState
 
 SPAWN_ROUNDS = 256  # candidates per human at spawn; exhausting them is an error
-SPAWN_CHUNK = 16  # rejection rounds drawn at once
 GOAL_ROUNDS = 16  # candidates per new goal of a non-stop human; exhausting them keeps the last
+# Chunk sizing of the spawn rejection rounds (speed only: the result does not depend on them).
+_CHUNK_HITS = 1.5  # a chunk holds this many expected valid candidates per searching episode
+_MIN_CANDIDATES = 512  # few episodes left: draw at least this many candidates in all
+_FIRST_DRAWS = 1 << 18  # uniforms of up to 16 first rounds drawn for every human at once (small batches)
+_MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 
 # Index tags keeping the purposes of random draws apart.
 _TAG_SPAWN, _TAG_NEW_GOAL = range(2)
+# Components of a spawn round: 0-2 circle start (angle, x noise, y noise), 3-4 square start,
+# 5-6 square goal, 7 square side (read from round 0).
+_SPAWN_COMPONENTS = 8
 
 
 class SpawnError(RuntimeError):
@@ -52,18 +60,21 @@ def _clear_of(points: Tensor, others: Tensor, valid_others: Tensor, min_dist: fl
     return ((d >= min_dist) | ~valid_others.unsqueeze(1)).all(-1)
 
 
-def _spawn_uniforms(episode_key: Tensor, num_humans: int, first_round: int, dtype: torch.dtype) -> Tensor:
-    """All spawn draws of one chunk of rounds in one hash call: ``[B, N, SPAWN_CHUNK, 8]``.
+def _spawn_uniforms(
+    spawn_key: Tensor, humans: Tensor | int, first_round: int, rounds: int, components: range, dtype: torch.dtype
+) -> Tensor:
+    """Spawn draws of ``components``, rounds ``first_round ..``: ``[B, rounds, C]`` for one human,
+    ``[B, H, rounds, C]`` for ``humans [H]``.
 
-    Components: 0-2 circle start (angle, x noise, y noise), 3-4 square start, 5-6 square goal,
-    7 square side (read from round 0).
+    ``spawn_key [B]`` is ``rng.fold(episode_key, _TAG_SPAWN)``, folded once for every draw.
     """
-    device = episode_key.device
-    h = torch.arange(num_humans, device=device).view(num_humans, 1, 1)
-    r = torch.arange(first_round, first_round + SPAWN_CHUNK, device=device).view(1, SPAWN_CHUNK, 1)
-    c = torch.arange(8, device=device).view(1, 1, 8)
-    index = (h * SPAWN_ROUNDS + r) * 8 + c
-    return rng.uniform(episode_key.view(-1, 1, 1, 1), _TAG_SPAWN, index, dtype=dtype)
+    device = spawn_key.device
+    r = torch.arange(first_round, first_round + rounds, device=device).view(rounds, 1)
+    c = torch.arange(components.start, components.stop, device=device)
+    if isinstance(humans, Tensor):
+        humans = humans.view(-1, 1, 1)
+    index = (humans * SPAWN_ROUNDS + r) * _SPAWN_COMPONENTS + c
+    return rng.uniform(spawn_key.view((-1,) + (1,) * index.dim()), index, dtype=dtype)
 
 
 def _first_valid(candidates: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
@@ -73,13 +84,22 @@ def _first_valid(candidates: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
     return pick, ok.any(-1)
 
 
+def _chunk_rounds(searching: int, agents: int, accept: float, rounds_left: int) -> int:
+    """Rounds to draw at once for ``searching`` episodes, given the acceptance rate seen so far."""
+    rounds = math.ceil(_CHUNK_HITS / max(accept, 1e-3))
+    searching = max(searching, 1)
+    rounds = max(rounds, math.ceil(_MIN_CANDIDATES / searching))
+    rounds = min(rounds, max(1, _MAX_PAIRS // (searching * agents)))
+    return max(1, min(rounds, rounds_left))
+
+
 def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = torch.float32) -> CrowdState:
     """Initial states of the episodes with keys ``episode_key [B]`` (see :func:`rng.episode_keys`).
 
     Humans are placed one after the other, each start (and goal) the first of its rejection
     rounds that keeps the clearance from everything placed before it, robot included. Rounds
-    are drawn ``SPAWN_CHUNK`` at a time for all humans at once; a further chunk is drawn only
-    for a human that found no valid candidate, so the result equals trying rounds one by one.
+    are drawn in chunks only for the human being placed and the episodes that have not found
+    a valid candidate yet, so the result equals trying rounds one by one, episode by episode.
     """
     B, N = episode_key.shape[0], cfg.num_humans
     device = episode_key.device
@@ -92,43 +112,75 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     positions = torch.zeros(B, N + 1, 2, dtype=dtype, device=device)
     goals = torch.zeros(B, N + 1, 2, dtype=dtype, device=device)
     positions[:, 0], goals[:, 0] = robot_pos, robot_goal
-    chunk0 = _spawn_uniforms(episode_key, N, 0, dtype)
-    side = torch.where(chunk0[:, :, 0, 7] > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [B, N, 1]
+    spawn_key = rng.fold(episode_key, _TAG_SPAWN)  # rng.uniform(key, tag, i) == rng.uniform(fold(key, tag), i)
+    humans = torch.arange(N, device=device)
+    # Small batches: the first rounds of every human in one draw [B, N, R0, 8], as per-human
+    # draws would cost more in call overhead than in arithmetic.
+    first_rounds = min(16, _FIRST_DRAWS // max(B * N * _SPAWN_COMPONENTS, 1))
+    chunk0 = None
+    if first_rounds:
+        chunk0 = _spawn_uniforms(spawn_key, humans, 0, first_rounds, range(_SPAWN_COMPONENTS), dtype)
+        u_side = chunk0[:, :, 0, 7]
+    else:
+        u_side = _spawn_uniforms(spawn_key, humans, 0, 1, range(7, 8), dtype)[:, :, 0, 0]
+    side = torch.where(u_side > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [B, N, 1]
+    accept = 1.0  # acceptance rate in the last placement's first chunk, sizing the next first chunk
 
     def clear(points: Tensor, others: Tensor) -> Tensor:
-        """``points [B, R, 2]`` clear of the robot (``others[:, 0]``) and the placed humans."""
-        d = torch.linalg.vector_norm(points.unsqueeze(2) - others.unsqueeze(1), dim=-1)  # [B, R, h+1]
-        return (d[..., 0] >= robot_clear) & (d[..., 1:] >= clearance).all(-1)
+        """``points [A, R, 2]`` clear of the robot (``others[:, 0]``) and the placed humans."""
+        d = torch.linalg.vector_norm(points.unsqueeze(2) - others.unsqueeze(1), dim=-1)  # [A, R, h+1]
+        ok = d[..., 0] >= robot_clear
+        # the nearest human decides (amin is exact; a NaN distance fails either way)
+        return ok & (d[..., 1:].amin(-1) >= clearance) if d.shape[-1] > 1 else ok
 
-    def place(h: int, what: str, make: Callable[[Tensor], Tensor], others: list[Tensor]) -> Tensor:
-        u = chunk0[:, h]
-        result, found = None, None
-        for first in range(0, SPAWN_ROUNDS, SPAWN_CHUNK):
-            if first:
-                u = _spawn_uniforms(episode_key, N, first, dtype)[:, h]
-            cand = make(u)
-            ok = clear(cand, others[0])
+    def place(h: int, what: str, components: range, make: Callable[[Tensor | slice, Tensor], Tensor],
+              others: list[Tensor]) -> Tensor:
+        """The first valid of ``make(episodes, uniforms)``'s candidates, ``[B, 2]``."""
+        nonlocal accept
+        result = torch.empty(B, 2, dtype=dtype, device=device)
+        episodes: Tensor | slice = slice(None)  # those still searching: all, then an index
+        A, first, rate = B, 0, accept
+        agents = sum(o.shape[1] for o in others)
+        while True:
+            if first == 0 and chunk0 is not None:
+                rounds, u = first_rounds, chunk0[:, h, :, components.start:components.stop]
+            else:
+                rounds = _chunk_rounds(A, agents, rate, SPAWN_ROUNDS - first)
+                u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, components, dtype)
+            cand = make(episodes, u)
+            ok = clear(cand, others[0][episodes])
             for extra in others[1:]:
-                ok = ok & clear(cand, extra)
+                ok = ok & clear(cand, extra[episodes])
             pick, hit = _first_valid(cand, ok)
-            result = pick if result is None else torch.where(found.unsqueeze(-1), result, pick)
-            found = hit if found is None else found | hit
-            if bool(found.all()):
+            result[episodes] = pick  # searching episodes overwrite it until they find one
+            hits, valid = torch.stack((hit.sum(), ok.sum())).tolist()  # the chunk's one host sync
+            rate = valid / max(A * rounds, 1)
+            if first == 0:
+                accept = rate
+            first += rounds
+            if hits == A:
                 return result
-        raise SpawnError(
-            f"could not place the {what} of human {h} in {int((~found).sum())} episode(s) after "
-            f"{SPAWN_ROUNDS} rejection rounds: the scenario is too crowded for its spawn clearance"
-        )
+            if first >= SPAWN_ROUNDS:
+                raise SpawnError(
+                    f"could not place the {what} of human {h} in {A - hits} episode(s) after "
+                    f"{SPAWN_ROUNDS} rejection rounds: the scenario is too crowded for its spawn clearance"
+                )
+            # the episodes still searching, in order, without a further sync
+            keep = torch.sort(hit.to(torch.uint8), stable=True).indices[: A - hits]
+            episodes = keep if isinstance(episodes, slice) else episodes[keep]
+            A -= hits
 
     for h in range(N):
         placed_pos, placed_goals = positions[:, : h + 1], goals[:, : h + 1]
         if h < cfg.num_circle_humans:
-            start = place(h, "start", lambda u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
+            start = place(h, "start", range(0, 3), lambda e, u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
                           [placed_pos, placed_goals])
             goal = -start
         else:
-            start = place(h, "start", lambda u: _square_points(cfg, side[:, h], u[..., 3], u[..., 4]), [placed_pos])
-            goal = place(h, "goal", lambda u: _square_points(cfg, -side[:, h], u[..., 5], u[..., 6]), [placed_goals])
+            start = place(h, "start", range(3, 5), lambda e, u: _square_points(cfg, side[e, h], u[..., 0], u[..., 1]),
+                          [placed_pos])
+            goal = place(h, "goal", range(5, 7), lambda e, u: _square_points(cfg, -side[e, h], u[..., 0], u[..., 1]),
+                         [placed_goals])
         positions[:, h + 1], goals[:, h + 1] = start, goal
 
     return CrowdState(
