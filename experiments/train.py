@@ -54,7 +54,13 @@ def main(cfg: DictConfig) -> float:
         _discard_empty_run_dir(out_dir)
     else:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    summary = run_training(run, run_dir)
+    from crowdrl.training.trainer import NonFiniteError
+
+    try:
+        summary = run_training(run, run_dir)
+    except NonFiniteError as exc:  # status.json says "failed" and why; no eval.json is written
+        print(f"training failed: {exc} (run folder: {run_dir.resolve()})", file=sys.stderr)
+        raise SystemExit(1) from None
     m = summary["test"]["metrics"]
     print(f"run folder: {run_dir.resolve()}")
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "

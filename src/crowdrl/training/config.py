@@ -12,6 +12,8 @@ paper's 10k episodes are ≈ 0.5M frames and its schedules convert at 50 frames 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -124,6 +126,8 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     except Exception as exc:  # omegaconf's messages name the key; keep them
         raise ConfigError(str(exc).splitlines()[0] + _hint(exc)) from None
     run: RunConfig = OmegaConf.to_object(merged)
+    for key, value in _floats(run):
+        _check(math.isfinite(value), key, f"must be a finite number, got {value}")
     e, t, x = run.env, run.train, run.exploration
     _one_of(e.scenario, "env.scenario", SCENARIOS)
     _check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
@@ -158,8 +162,37 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
     _check(run.seed >= 0, "seed", f"must be >= 0, got {run.seed}")
     _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
-    _check(run.device == "cpu" or run.device.startswith("cuda"), "device", f"got {run.device!r}; allowed: cpu, cuda[:i]")
+    _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
+           f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
+           f"({t.warmup_frames}): with this budget not a single update could run")
+    check_device(run.device)
     return run
+
+
+def check_device(device: str, key: str = "device") -> None:
+    """``cpu``, or a CUDA device that exists on this machine; otherwise a :class:`ConfigError`."""
+    import torch
+
+    _check(device == "cpu" or re.fullmatch(r"cuda(:\d+)?", device) is not None, key,
+           f"got {device!r}; allowed: cpu, cuda, cuda:<index>")
+    if device.startswith("cuda"):
+        _check(torch.cuda.is_available(), key, f"{device!r} requested but CUDA is not available on this machine "
+                                               f"(torch.cuda.is_available() is False); use {key}=cpu")
+        index = int(device.split(":")[1]) if ":" in device else 0
+        count = torch.cuda.device_count()
+        _check(index < count, key, f"{device!r} does not exist: this machine has {count} CUDA device(s)")
+
+
+def _floats(node: Any, prefix: str = "") -> list[tuple[str, float]]:
+    """Every float field of a (nested) config dataclass, with its dotted key."""
+    out = []
+    for f in dataclasses.fields(node):
+        value, key = getattr(node, f.name), f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            out += _floats(value, f"{key}.")
+        elif isinstance(value, float):
+            out.append((key, value))
+    return out
 
 
 def _hint(exc: Exception) -> str:

@@ -39,6 +39,10 @@ def linear_schedule(start: float, end: float, duration: int, t: int) -> float:
     return end + (start - end) * max(0.0, 1.0 - t / duration)
 
 
+class NonFiniteError(FloatingPointError):
+    """Training produced a non-finite loss or non-finite weights: the run fails, it is never tested."""
+
+
 @dataclass
 class Counters:
     frames: int = 0
@@ -211,6 +215,9 @@ class Trainer:
         total = 0.0
         for _ in range(n):
             total += self.update_once(self.buffer.sample())
+        if n and not all(bool(torch.isfinite(p).all()) for p in self.net.parameters()):
+            raise NonFiniteError(f"the Q network's weights became non-finite by update {c.updates} "
+                                 f"(frame {c.frames}); lower train.lr or check the rewards")
         return total / max(n, 1)
 
     def update_once(self, sample: TensorDictBase) -> float:
@@ -224,7 +231,11 @@ class Trainer:
         self.counters.updates += 1
         if self.counters.updates % self.updates_per_copy == 0:
             self.loss.update_target()
-        return float(loss.detach())
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise NonFiniteError(f"the loss became non-finite ({value}) at update {self.counters.updates} "
+                                 f"(frame {self.counters.frames}); lower train.lr or check the rewards")
+        return value
 
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
@@ -299,4 +310,4 @@ def _progress(enabled: bool, total: int, initial: int):
     return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 
 
-__all__ = ["Trainer", "linear_schedule", "CheckpointError"]
+__all__ = ["Trainer", "NonFiniteError", "linear_schedule", "CheckpointError"]
