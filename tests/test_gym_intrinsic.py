@@ -69,10 +69,10 @@ def _crowdrl_imports(path: Path) -> set[str]:
 
 
 def test_intrinsic_modules_and_example_import_only_crowdrl_exploration():
-    # noisy.py / dropout.py (crowd Q-heads) live in the same package but are not imported by its
-    # __init__; the intrinsic-reward modules must stay free of crowd code
+    # every exploration module, the noisy and dropout heads included, must stay free of crowd code
     package = ROOT / "src" / "crowdrl" / "exploration"
-    files = [EXAMPLE, *(package / f"{name}.py" for name in ("__init__", "intrinsic", "icm", "re3"))]
+    names = ("__init__", "intrinsic", "icm", "re3", "noisy", "dropout", "_surgery")
+    files = [EXAMPLE, *(package / f"{name}.py" for name in names)]
     for path in files:
         assert all(n.startswith("crowdrl.exploration") for n in _crowdrl_imports(path)), path
 
