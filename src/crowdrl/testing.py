@@ -72,7 +72,8 @@ def rvo2_velocities(scene: dict[str, np.ndarray], *, time_step: float = 0.25, ne
     return np.array([sim.get_agent_velocity(i).to_tuple() for i in range(len(scene["positions"]))], dtype=np.float64)
 
 
-def padded_batch(scenes: list[dict], dtype: torch.dtype = torch.float32) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+def padded_batch(scenes: list[dict[str, np.ndarray]],
+                 dtype: torch.dtype = torch.float32) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Stack scenes of different sizes into ``[B, Nmax]`` tensors and a presence mask ``[B, Nmax]``;
     absent agents sit at the origin with zero velocity (the mask, not the distance, excludes them)."""
     n_max = max(len(s["positions"]) for s in scenes)
