@@ -132,8 +132,9 @@ def acting(module: nn.Module, flag: bool = True) -> Iterator[nn.Module]:
 def dropout_schedule(frame: int, start: float = 0.5, end: float = 0.01, *, duration_frames: int) -> float:
     """``start`` -> ``end`` linearly over ``duration_frames`` collected frames, then ``end``.
 
-    SPEC's 7000 episodes are frames here: pass the frame count the trainer uses for its
-    ε schedule (``exploration.anneal_frames``-like), so all variants decay on the same clock.
+    Upstream's 7000 episodes are frames here (``docs/mdp.md``, "Exploration variants"): pass the
+    frame count the trainer uses for its ε schedule (``exploration.anneal_frames``-like), so all
+    variants decay on the same clock.
     """
     _check_p(start), _check_p(end)
     if duration_frames < 1:
