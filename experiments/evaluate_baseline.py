@@ -17,7 +17,7 @@ import torch
 from crowdrl.evaluation import evaluate_orca
 from crowdrl.sim.config import SCENARIOS, CrowdConfig
 
-# Upstream's ORCA row (SPEC §5): return, success, collision, navigation time.
+# Upstream's ORCA row (docs/mdp.md, "ORCA robot baseline"): return, success, collision, navigation time.
 UPSTREAM = {"circle": (0.3315, 0.769, 0.222, 13.880), "square": (0.4417, 0.840, 0.151, 12.856)}
 
 

@@ -33,6 +33,7 @@ import time
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
@@ -102,7 +103,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """Train, then return the summary (``last_sample`` is the last sampled, rewritten batch)."""
+    """Train, then return the summary: ``last_sample`` is the last sampled, rewritten batch and
+    ``last_batch`` its checks (JSON-ready); ``crowdrl_modules`` lists the crowdrl modules imported."""
     args = parse_args(argv)
     if args.json:  # keep stdout to the JSON document (torchrl logs INFO lines there)
         logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -173,9 +175,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         },
         "returns": returns,
         "q_checksum": float(sum(p.detach().double().sum() for p in qnet.parameters())),
+        "last_batch": None if last_sample is None else _batch_checks(last_sample, args.beta),
+        "crowdrl_modules": sorted(m for m in sys.modules if m.startswith("crowdrl.")),
         "last_sample": last_sample,
     }
     return summary
+
+
+def _batch_checks(sample: TensorDictBase, beta: float) -> dict[str, Any]:
+    """What the last sampled batch shows about the reward rewrite ``r = r_ext + beta * r_in``."""
+    nxt = sample["next"]
+    r = nxt["reward"]
+    out: dict[str, Any] = {"reward_shape": list(r.shape), "reward": r.flatten().tolist(),
+                           "has_reward_int": "reward_int" in nxt.keys()}
+    if out["has_reward_int"]:
+        r_ext, r_in = nxt["reward_ext"], nxt["reward_int"]
+        out.update({
+            "reward_ext_shape": list(r_ext.shape), "reward_int_shape": list(r_in.shape),
+            "reward_int_finite": bool(torch.isfinite(r_in).all()),
+            "reward_int_positive_somewhere": bool((r_in > 0).any()),
+            "max_abs_rewrite_error": float((r - (r_ext + beta * r_in)).abs().max()),
+        })
+    return out
 
 
 def _report(summary: dict[str, Any]) -> str:

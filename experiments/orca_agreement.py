@@ -2,26 +2,24 @@
 
     python experiments/orca_agreement.py          # needs pyrvo (installed by `make install`)
 
-Uses the same scenes and exclusions as ``tests/test_orca.py`` (which asserts |dv| <= 1e-4) and
-prints the measured worst |dv|, how many agents were bit-exact, and the largest float32 speed.
+Uses the same scenes (:mod:`crowdrl.testing`) and exclusions as ``tests/test_orca.py`` (which
+asserts |dv| <= 1e-4) and prints the measured worst |dv|, how many agents were bit-exact, and the
+largest float32 speed.
 """
 
 from __future__ import annotations
 
 import gzip
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from crowdrl.sim.orca import orca_solve
+from crowdrl.testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
 
-from crowdrl.sim.orca import orca_solve  # noqa: E402
-from tests.orca_scenes import KINDS, random_scene, rvo2_velocities  # noqa: E402
-from tests.test_orca import TOL, _padded_batch  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
@@ -50,15 +48,15 @@ def main() -> None:
         gen = np.random.default_rng(1234 + KINDS.index(kind))
         scenes = [random_scene(gen, kind) for _ in range(300)]
         refs = [rvo2_velocities(s) for s in scenes]
-        b32, mask = _padded_batch(scenes)
-        b64, _ = _padded_batch(scenes, torch.float64)
+        b32, mask = padded_batch(scenes)
+        b64, _ = padded_batch(scenes, torch.float64)
         params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0, mask=mask)
         v32, v64 = orca_solve(**b32, **params), orca_solve(**b64, **params).velocities
         for b, (s, ref) in enumerate(zip(scenes, refs)):
             n = len(s["positions"])
             v = v32.velocities[b, :n].double().numpy()
             err = np.linalg.norm(v - ref, axis=-1)
-            sens = np.linalg.norm(v64[b, :n].numpy() - ref, axis=-1) > TOL
+            sens = np.linalg.norm(v64[b, :n].numpy() - ref, axis=-1) > ORCA_TOLERANCE
             inf = v32.lp_infeasible[b, :n].numpy()
             n_sens, n_all = n_sens + int(sens.sum()), n_all + n
             max_speed = max(max_speed, float(np.linalg.norm(v, axis=-1).max()))
@@ -68,7 +66,7 @@ def main() -> None:
                     fresh[branch][1] += int(m.sum())
     for b, (e, n) in fresh.items():
         print(f"fresh scenes (4 kinds x 300), {b:<8}: worst |dv| {e:.2e} m/s over {n} agents")
-    print(f"ill-conditioned agents excluded (float64 moves them > {TOL}): {n_sens}/{n_all}")
+    print(f"ill-conditioned agents excluded (float64 moves them > {ORCA_TOLERANCE}): {n_sens}/{n_all}")
     print(f"largest float32 speed returned (max speed 1 m/s): {max_speed:.4f} m/s")
 
 

@@ -2,9 +2,9 @@
 
     python experiments/orca_overshoot.py [--scenes 3000] [--json]   # needs pyrvo (`make install`)
 
-For N = 5, 10, 20, 30, 50 agents: random scenes (positions uniform in a 10 m square, radius
-0.31 m as the humans' ORCA radius, random current velocities and goals, max speed 1 m/s, the
-humans' ORCA parameters), fixed seeds. Prints the largest speed returned by our float32 ORCA
+For N = 5, 10, 20, 30, 50 agents: random ``crowd`` scenes of :mod:`crowdrl.testing` (positions
+uniform in a 10 m square, radius 0.31 m as the humans' ORCA radius, random current velocities and
+goals, max speed 1 m/s) with the humans' ORCA parameters, fixed seeds. Prints the largest speed returned by our float32 ORCA
 (:func:`crowdrl.sim.orca.orca_velocities`), by pyrvo's RVO2 (float32 C++) and by our float64
 ORCA, with the number of agents above 1 m/s and above 1.01 m/s.
 """
@@ -18,50 +18,24 @@ import numpy as np
 import torch
 
 from crowdrl.sim.orca import orca_velocities
+from crowdrl.testing import random_scene, rvo2_velocities
 
 SIZES = (5, 10, 20, 30, 50)
 PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
 LIMITS = {"over": 1.0 + 1e-6, "over_1.01": 1.01}  # above the limit beyond float32 rounding; by 1 %+
 
 
-def random_scene(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
-    """``n`` agents in a 10 m square, moving at random, each heading to a random goal (float32)."""
-    pos = rng.uniform(-5, 5, (n, 2))
-    speed, ang = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
-    vel = np.stack((speed * np.cos(ang), speed * np.sin(ang)), -1)
-    pref = rng.uniform(-5, 5, (n, 2)) - pos
-    norm = np.linalg.norm(pref, axis=-1, keepdims=True)
-    pref = np.where(norm > 1, pref / np.maximum(norm, 1e-9), pref)
-    f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
-    return {"positions": f32(pos), "velocities": f32(vel), "pref_velocities": f32(pref),
-            "radius": f32(np.full(n, 0.31)), "max_speed": f32(np.ones(n))}
-
-
-def rvo2_velocities(scene: dict[str, np.ndarray]) -> np.ndarray:
-    """One RVO2 ``doStep`` through pyrvo: the new velocities ``[n, 2]``."""
-    import pyrvo
-
-    ts, nd, mn, th = (PARAMS[k] for k in ("time_step", "neighbor_dist", "max_neighbors", "time_horizon"))
-    sim = pyrvo.RVOSimulator(ts, nd, mn, th, 5.0, 0.3, 1.0)
-    for p, v, r, m in zip(scene["positions"], scene["velocities"], scene["radius"], scene["max_speed"]):
-        sim.add_agent(tuple(map(float, p)), nd, mn, th, 5.0, float(r), float(m), tuple(map(float, v)))
-    for i, pv in enumerate(scene["pref_velocities"]):
-        sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
-    sim.do_step()
-    return np.array([sim.get_agent_velocity(i).to_tuple() for i in range(len(scene["positions"]))])
-
-
 def measure(n: int, scenes: int, seed: int) -> dict[str, float | int]:
     """Largest speed and agents above the limits over ``scenes`` random scenes of ``n`` agents."""
     rng = np.random.default_rng(seed)
-    batch = [random_scene(rng, n) for _ in range(scenes)]
+    batch = [random_scene(rng, "crowd", n) for _ in range(scenes)]
     stacked = {k: np.stack([s[k] for s in batch]) for k in batch[0]}
     speeds = {}
     for name, dtype in (("ours_f32", torch.float32), ("ours_f64", torch.float64)):
         t = {k: torch.as_tensor(v).to(dtype) for k, v in stacked.items()}
         v = orca_velocities(**t, **PARAMS)
         speeds[name] = torch.linalg.vector_norm(v.double(), dim=-1).numpy()
-    speeds["rvo2"] = np.stack([np.linalg.norm(rvo2_velocities(s), axis=-1) for s in batch])
+    speeds["rvo2"] = np.stack([np.linalg.norm(rvo2_velocities(s, **PARAMS), axis=-1) for s in batch])
     out: dict[str, float | int] = {"N": n, "scenes": scenes, "seed": seed}
     for name, s in speeds.items():
         out[f"max_{name}"] = float(s.max())

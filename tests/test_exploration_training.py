@@ -128,23 +128,6 @@ def test_multirun_sweeps_exploration_and_beta(tmp_path):
     assert sorted(configs) == [("icm", 0.0), ("icm", 0.02), ("re3", 0.0), ("re3", 0.02)]
 
 
-def test_compare_script_trains_skips_finished_runs_and_aggregates(tmp_path, capsys):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import compare_exploration
-
-    args = ["--variants", "egreedy", "re3", "--seeds", "3", "--jobs", "2", "--out", str(tmp_path), "--",
-            "preset=smoke", "logger=csv", "train.total_frames=64", "train.test_episodes=2", "env.num_humans=4"]
-    summary = compare_exploration.main(args)
-    assert set(summary) == {"egreedy", "re3"} and summary["re3"]["seeds"] == [3]
-    for variant in summary:
-        result = json.loads((tmp_path / f"{variant}-s3" / "eval.json").read_text())["metrics"]
-        assert summary[variant]["success_rate"]["mean"] == result["success_rate"]
-    mtimes = {p: p.stat().st_mtime_ns for p in tmp_path.glob("*/eval.json")}
-    again = compare_exploration.main(args)  # finished runs are not trained again
-    assert again == summary and {p: p.stat().st_mtime_ns for p in tmp_path.glob("*/eval.json")} == mtimes
-    assert "egreedy" in capsys.readouterr().out
-
-
 def test_resuming_a_finished_run_trains_no_more_and_restores_the_schedules(tmp_path):
     """A run killed after training (e.g. during its test) resumes to the test: no extra updates,
     best.pt untouched, ε and dropout p those of its frame count rather than their start values."""
@@ -166,14 +149,3 @@ def test_n_step_longer_than_a_collected_batch_is_rejected():
     with pytest.raises(ConfigError, match=r"train\.n_step"):
         validate({"train": {"n_step": 9, "steps_per_batch": 8}})
     validate({"exploration": {"name": "icm", "re3_k": 500}})  # re3_k only matters for re3
-
-
-def test_compare_script_refuses_to_mix_budgets(tmp_path):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import compare_exploration
-
-    run_dir = tmp_path / "egreedy-s0"
-    run_dir.mkdir()
-    (run_dir / "compare_overrides.json").write_text(json.dumps(["train.total_frames=64"]))
-    with pytest.raises(SystemExit, match="trained with overrides"):
-        compare_exploration.run_one(tmp_path, "egreedy", 0, ["train.total_frames=128"])

@@ -1,7 +1,10 @@
-"""Noisy-net and dropout exploration of the dueling head (``crowdrl.exploration.noisy`` / ``.dropout``)."""
+"""Noisy-net and dropout exploration of a Q-network head (``crowdrl.exploration.noisy`` / ``.dropout``)."""
 
 import copy
+import json
 import math
+import subprocess
+import sys
 import warnings
 
 import pytest
@@ -23,13 +26,11 @@ from crowdrl.exploration.dropout import (
     add_action_dropout,
     dropout_layers,
     dropout_schedule,
-    make_dropout_q_network,
     set_acting,
     set_dropout_p,
 )
 from crowdrl.exploration.noisy import (
     FactorisedNoisyLinear,
-    make_noisy_q_network,
     noise_disabled,
     noisify_head,
     noisy_layers,
@@ -43,6 +44,20 @@ IN_KEYS = ["robot_rc", "humans_rc"]
 
 def _obs(batch: int = 6, n: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.randn(batch, 9), torch.randn(batch, n, 5)
+
+
+def _noisy_net(sigma0: float = 0.5) -> nn.Module:
+    """The SG-D3QN Q-network with a noisy dueling head."""
+    net = make_q_network("sgd3qn")
+    noisify_head(net.head, sigma0)
+    return net
+
+
+def _dropout_net(p: float = 0.5) -> nn.Module:
+    """The SG-D3QN Q-network with action dropout in its dueling head."""
+    net = make_q_network("sgd3qn")
+    add_action_dropout(net.head, p)
+    return net
 
 
 def _plain_head_from_noisy(head: DuelingHead) -> DuelingHead:
@@ -80,7 +95,7 @@ def _dqn_loss(net: nn.Module) -> tuple[DQNLoss, HardUpdate]:
 
 # ----------------------------------------------------------------------------------- noisy nets
 def test_noisify_replaces_every_head_linear_only():
-    net = make_noisy_q_network("sgd3qn")
+    net = _noisy_net()
     plain = DuelingHead()
     layers = [m for m in net.head.modules() if isinstance(m, nn.Linear)]
     assert len(layers) == 6 and all(type(m) is FactorisedNoisyLinear for m in layers)
@@ -122,7 +137,7 @@ def test_noise_is_factorised_rank_one_with_right_statistics():
 
 
 def test_noisy_q_resamples_and_mean_weights_when_disabled():
-    net = make_noisy_q_network("sgd3qn")
+    net = _noisy_net()
     robot, humans = _obs()
     with torch.no_grad():
         q1, q1_again = net(robot, humans), net(robot, humans)
@@ -147,7 +162,7 @@ def test_noisy_q_resamples_and_mean_weights_when_disabled():
 
 
 def test_gradients_reach_mu_and_sigma():
-    net = make_noisy_q_network("sgd3qn")
+    net = _noisy_net()
     net(*_obs()).pow(2).mean().backward()
     for layer in noisy_layers(net):
         for p in (layer.weight_mu, layer.weight_sigma, layer.bias_mu, layer.bias_sigma):
@@ -159,9 +174,9 @@ def test_gradients_reach_mu_and_sigma():
 
 
 def test_state_dict_round_trip_between_noisy_nets():
-    a = make_noisy_q_network("sgd3qn")
+    a = _noisy_net()
     torch.manual_seed(1)
-    b = make_noisy_q_network("sgd3qn")
+    b = _noisy_net()
     obs = _obs()
     with torch.no_grad():
         assert not torch.allclose(a(*obs), b(*obs))
@@ -176,7 +191,7 @@ def test_state_dict_round_trip_between_noisy_nets():
 
 
 def test_dqn_loss_trains_sigma_and_target_noise_is_independent():
-    net = make_noisy_q_network("sgd3qn")
+    net = _noisy_net()
     loss, updater = _dqn_loss(net)
     online, target = loss.value_network_params, loss.target_value_network_params
     eps_keys = [k for k in online.keys(True, True) if k[-1] in ("weight_epsilon", "bias_epsilon")]
@@ -201,7 +216,7 @@ def test_dqn_loss_trains_sigma_and_target_noise_is_independent():
 
 def test_reset_noise_on_a_module_holding_online_and_target_copies():
     """The layout of a loss that keeps ``net`` and a deep-copied ``target_net`` as children."""
-    net = make_noisy_q_network("sgd3qn")
+    net = _noisy_net()
     pair = nn.ModuleDict({"net": net, "target_net": copy.deepcopy(net).requires_grad_(False)})
     obs = _obs()
     with torch.no_grad():
@@ -227,7 +242,7 @@ def test_dropout_after_each_hidden_relu_and_same_state_dict_keys():
 
 
 def test_dropout_only_when_acting():
-    net = make_dropout_q_network("sgd3qn", p=0.5)
+    net = _dropout_net(0.5)
     plain = make_q_network("sgd3qn")
     plain.load_state_dict(net.state_dict())
     obs = _obs()
@@ -255,7 +270,7 @@ def test_dropout_only_when_acting():
 
 
 def test_set_dropout_p_and_bad_p():
-    net = make_dropout_q_network("sgd3qn", p=0.5)
+    net = _dropout_net(0.5)
     set_dropout_p(net, 0.2)
     assert [layer.p for layer in dropout_layers(net)] == [0.2] * 4
     for bad in (-0.1, 1.0, 1.5, float("nan")):
@@ -283,7 +298,7 @@ def test_dropout_schedule():
 
 
 def test_dqn_loss_is_deterministic_with_dropout():
-    net = make_dropout_q_network("sgd3qn", p=0.5)
+    net = _dropout_net(0.5)
     loss, _ = _dqn_loss(net)
     td = _transitions()
     with set_exploration_type(ExplorationType.RANDOM):  # LossModule switches to DETERMINISTIC
@@ -291,10 +306,44 @@ def test_dqn_loss_is_deterministic_with_dropout():
     assert torch.equal(l1, l2)
 
 
+# ------------------------------------------------------------------------------------ generic
+def test_surgery_works_on_any_module():
+    torch.manual_seed(0)
+    head = nn.Sequential(nn.Linear(4, 8), nn.ReLU(), nn.Linear(8, 3))
+    plain = copy.deepcopy(head)
+    noisy = noisify_head(copy.deepcopy(head), sigma0=0.3)
+    assert [type(m) for m in noisy] == [FactorisedNoisyLinear, nn.ReLU, FactorisedNoisyLinear]
+    assert [(m.in_features, m.out_features) for m in noisy_layers(noisy)] == [(4, 8), (8, 3)]
+    x = torch.randn(5, 4)
+    with torch.no_grad():
+        assert noisy(x).shape == (5, 3)
+    dropped = add_action_dropout(head, p=0.5)
+    assert len(dropout_layers(dropped)) == 1 and isinstance(dropped[1][1], ScheduledDropout)
+    assert dropped.state_dict().keys() == plain.state_dict().keys()
+    with torch.no_grad():
+        assert torch.equal(dropped(x), plain(x))  # not acting: the plain network
+        with acting(dropped):
+            assert dropped(x).shape == (5, 3)
+    with pytest.raises(ValueError, match="nn.Linear"):
+        noisify_head(nn.Sequential(nn.ReLU()))
+    with pytest.raises(ValueError, match="nn.ReLU"):
+        add_action_dropout(nn.Sequential(nn.Linear(4, 3), nn.Tanh()))
+
+
+def test_noisy_and_dropout_import_no_crowd_code():
+    code = ("import json, sys; import crowdrl.exploration.noisy, crowdrl.exploration.dropout; "
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith('crowdrl.'))))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    modules = json.loads(proc.stdout.splitlines()[-1])
+    assert "crowdrl.exploration.noisy" in modules and "crowdrl.exploration.dropout" in modules
+    assert not [m for m in modules if m.startswith(("crowdrl.models", "crowdrl.sim", "crowdrl.envs"))], modules
+
+
 # --------------------------------------------------------------------------- TorchRL integration
 @pytest.mark.parametrize("kind", ["noisy", "dropout"])
 def test_q_value_actor_actions_in_range(kind):
-    net = make_noisy_q_network("sgd3qn") if kind == "noisy" else make_dropout_q_network("sgd3qn", p=0.5)
+    net = _noisy_net() if kind == "noisy" else _dropout_net(0.5)
     actor = _actor(net)
     robot, humans = _obs(16)
     with set_exploration_type(ExplorationType.RANDOM):
@@ -308,13 +357,13 @@ def test_q_value_actor_actions_in_range(kind):
 def test_collector_acts_with_dropout_and_shares_noisy_weights():
     base = CrowdNavEnv(num_envs=2, seed=0, split="train")
     env = TransformedEnv(base, RobotCentric())
-    net = make_dropout_q_network("sgd3qn", p=0.5)
+    net = _dropout_net(0.5)
     collector = Collector(env, _actor(net), frames_per_batch=4, total_frames=-1, auto_register_policy_transforms=False)
     batch = next(iter(collector))
     collector.shutdown()
     with torch.no_grad():
         assert not torch.allclose(batch["action_value"], net(batch["robot_rc"], batch["humans_rc"]))
-    noisy = make_noisy_q_network("sgd3qn")
+    noisy = _noisy_net()
     collector = Collector(env, _actor(noisy), frames_per_batch=2, total_frames=-1, auto_register_policy_transforms=False)
     it = iter(collector)
     for _ in range(2):  # the collector uses the net's own noise buffers: reset_noise between batches acts

@@ -13,27 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crowdrl.sim.orca import orca_solve, orca_velocities
-from tests.orca_scenes import KINDS, random_scene, rvo2_velocities
+from crowdrl.testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
 
-TOL = 1e-4  # m/s, the acceptance bound of the issue
 CASES = json.load(gzip.open(Path(__file__).parent / "data" / "orca_cases.json.gz", "rt"))["cases"]
-
-
-def _padded_batch(scenes: list[dict], dtype=torch.float32):
-    """Stack scenes of different sizes into [B, Nmax] tensors with a presence mask."""
-    n_max = max(len(s["positions"]) for s in scenes)
-    B = len(scenes)
-    out = {k: torch.zeros(B, n_max, 2, dtype=dtype) for k in ("positions", "velocities", "pref_velocities")}
-    out.update({k: torch.ones(B, n_max, dtype=dtype) for k in ("radius", "max_speed")})
-    mask = torch.zeros(B, n_max, dtype=torch.bool)
-    for b, s in enumerate(scenes):
-        n = len(s["positions"])
-        for k in out:
-            out[k][b, :n] = torch.as_tensor(np.asarray(s[k]), dtype=dtype)
-        # park absent agents far away: the mask, not the distance, must exclude them
-        out["positions"][b, n:] = 0.0
-        mask[b, :n] = True
-    return out, mask
 
 
 def _solve_case(case, dtype=torch.float32):
@@ -59,10 +41,10 @@ def test_reference_cases_agree_with_rvo2_in_both_branches():
             if sel.any():
                 worst[branch] = max(worst[branch], float(err[sel].max()))
                 checked[branch] += int(sel.sum())
-        bad = np.flatnonzero((err > TOL) & ~sensitive)
+        bad = np.flatnonzero((err > ORCA_TOLERANCE) & ~sensitive)
         assert bad.size == 0, f"case {case['input']['id']} ({case['input']['kind']}): agents {bad} off by {err[bad]}"
     assert checked["feasible"] > 500 and checked["fallback"] > 300, checked
-    assert worst["feasible"] <= TOL and worst["fallback"] <= TOL
+    assert worst["feasible"] <= ORCA_TOLERANCE and worst["fallback"] <= ORCA_TOLERANCE
 
 
 def test_reference_cases_batched_with_mask_match_one_by_one():
@@ -70,7 +52,7 @@ def test_reference_cases_batched_with_mask_match_one_by_one():
     scenes = [{k: case["input"][k] for k in ("positions", "velocities", "pref_velocities", "radius", "max_speed")}
               for case in CASES if case["input"]["kind"] != "param_variation"]
     kept = [case for case in CASES if case["input"]["kind"] != "param_variation"]
-    batch, mask = _padded_batch(scenes)
+    batch, mask = padded_batch(scenes)
     i = kept[0]["input"]
     sol = orca_solve(**batch, mask=mask, time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
                      max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"])
@@ -101,8 +83,8 @@ def test_fresh_random_scenes_agree_with_rvo2(kind):
     gen = np.random.default_rng(1234 + KINDS.index(kind))
     scenes = [random_scene(gen, kind) for _ in range(300)]
     refs = [rvo2_velocities(s) for s in scenes]
-    batch32, mask = _padded_batch(scenes)
-    batch64, _ = _padded_batch(scenes, torch.float64)
+    batch32, mask = padded_batch(scenes)
+    batch64, _ = padded_batch(scenes, torch.float64)
     params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0, mask=mask)
     v32 = orca_solve(**batch32, **params)
     v64 = orca_solve(**batch64, **params).velocities
@@ -110,10 +92,11 @@ def test_fresh_random_scenes_agree_with_rvo2(kind):
     for b, (s, ref) in enumerate(zip(scenes, refs)):
         n = len(s["positions"])
         err = np.linalg.norm(v32.velocities[b, :n].double().numpy() - ref, axis=-1)
-        # Ill-conditioned agents: where float64 arithmetic itself moves the answer by > TOL, the
-        # float32 result is rounding noise (the reference set flags these "precision_sensitive").
-        sensitive = np.linalg.norm(v64[b, :n].numpy() - ref, axis=-1) > TOL
-        bad = np.flatnonzero((err > TOL) & ~sensitive)
+        # Ill-conditioned agents: where float64 arithmetic itself moves the answer by more than
+        # ORCA_TOLERANCE, the float32 result is rounding noise (the reference set flags these
+        # "precision_sensitive").
+        sensitive = np.linalg.norm(v64[b, :n].numpy() - ref, axis=-1) > ORCA_TOLERANCE
+        bad = np.flatnonzero((err > ORCA_TOLERANCE) & ~sensitive)
         assert bad.size == 0, f"{kind} scene {b}: agents {bad} off by {err[bad]}"
         n_agents += n
         n_sensitive += int(sensitive.sum())
@@ -180,7 +163,7 @@ def test_velocities_are_finite_and_within_max_speed(scene):
     v32, v64 = out[torch.float32].velocities[0].double(), out[torch.float64].velocities[0]
     assert torch.isfinite(v32).all() and torch.isfinite(v64).all()
     assert (v64.norm(dim=-1) <= 1.0 + 1e-9).all()
-    conditioned = (v32 - v64).norm(dim=-1) <= TOL
+    conditioned = (v32 - v64).norm(dim=-1) <= ORCA_TOLERANCE
     assert (v32.norm(dim=-1)[conditioned] <= 1.0 + 1e-4).all()
     # feasible programs are always well conditioned enough to respect the disc
     assert (v32.norm(dim=-1)[~out[torch.float32].lp_infeasible[0]] <= 1.0 + 1e-5).all()

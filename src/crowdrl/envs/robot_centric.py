@@ -1,4 +1,5 @@
-"""The robot-centric state (``SPEC.md`` §1) as a pure function and as a TorchRL ``Transform``."""
+"""The robot-centric state (``docs/mdp.md``, "Observations") as a pure function and as a TorchRL
+``Transform``."""
 
 from __future__ import annotations
 

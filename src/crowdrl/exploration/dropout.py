@@ -1,11 +1,13 @@
-"""Dropout exploration for the dueling head (``SPEC.md`` §4): dropout after each hidden ReLU of
-the head **during action selection**, ``p`` decaying linearly 0.5 -> 0.01, no ε-greedy.
+"""Dropout exploration for the head of a Q-network: dropout after each hidden ReLU of the head
+**during action selection**, ``p`` decaying linearly (0.5 -> 0.01 in crowdrl's trainer, see
+``docs/mdp.md``, "Exploration variants"), no ε-greedy. :func:`add_action_dropout` takes any
+``nn.Module``; crowdrl's trainer passes the dueling head of its Q-network.
 
 When dropout is on, and why:
 
 * **action selection (collection)** — on. A fresh mask per forward, i.e. per env step and per
   env of the batch (each of the ``B`` envs explores with its own thinned network).
-* **loss and target** — off: SPEC applies dropout "during action selection", so the TD target
+* **loss and target** — off: the variant applies dropout "during action selection", so the TD target
   and ``Q(s, a)`` are those of the full network the greedy policy uses, and the update is
   deterministic given the batch.
 * **evaluation** — off (greedy policy).
@@ -24,22 +26,22 @@ mode), so ``eval()`` only acts as an extra global "off".
 
 Layout. Each hidden ``nn.ReLU`` is replaced by ``nn.Sequential(ReLU, ScheduledDropout)`` rather
 than inserting a module into the ``nn.Sequential`` stacks, so the Linear layers keep their
-indices: the ``state_dict`` of a dropout head loads into a plain :class:`DuelingHead` (and back)
+indices: the ``state_dict`` of a dropout head loads into the plain head (and back)
 unchanged, and the greedy test policy can be a plain network.
 """
 
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Iterator, TypeVar
 
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from crowdrl.exploration._surgery import replace_children
-from crowdrl.models.dueling import DuelingHead
-from crowdrl.models.qnet import CrowdQNetwork, make_q_network
+
+M = TypeVar("M", bound=nn.Module)
 
 
 def _check_p(p: float) -> float:
@@ -81,25 +83,19 @@ def dropout_layers(module: nn.Module) -> list[ScheduledDropout]:
     return [m for m in module.modules() if isinstance(m, ScheduledDropout)]
 
 
-def add_action_dropout(head: DuelingHead, p: float = 0.5) -> DuelingHead:
-    """Put a :class:`ScheduledDropout` ``p`` after every ``nn.ReLU`` of ``head``, in place; returns
-    ``head``. For a :class:`DuelingHead` these are its 4 hidden ReLUs (trunk 2, value 1,
-    advantage 1); the output layers have no activation. Parameter names are unchanged."""
+def add_action_dropout(head: M, p: float = 0.5) -> M:
+    """Put a :class:`ScheduledDropout` ``p`` after every ``nn.ReLU`` under ``head`` (any module), in
+    place; returns ``head``. For crowdrl's dueling head these are its 4 hidden ReLUs (trunk 2,
+    value 1, advantage 1); its output layers have no activation. Parameter names are unchanged.
+    Only ``nn.ReLU`` child modules are seen (not ``F.relu`` calls); a ``head`` with none is a
+    ``ValueError``."""
     p = _check_p(p)
     if dropout_layers(head):
         raise ValueError(f"{type(head).__name__} already has action dropout")
     added = replace_children(head, lambda m: isinstance(m, nn.ReLU), lambda m: nn.Sequential(m, ScheduledDropout(p)))
     if added == 0:
-        raise ValueError(f"{type(head).__name__} has no nn.ReLU after which to put dropout")
+        raise ValueError(f"{type(head).__name__} has no nn.ReLU child module after which to put dropout")
     return head
-
-
-def make_dropout_q_network(encoder_name: str = "sgd3qn", p: float = 0.5, num_actions: int = 81,
-                           hidden: int = 128, **encoder_kwargs) -> CrowdQNetwork:
-    """:func:`~crowdrl.models.make_q_network` with action dropout ``p`` in the dueling head."""
-    net = make_q_network(encoder_name, num_actions=num_actions, hidden=hidden, **encoder_kwargs)
-    add_action_dropout(net.head, p)
-    return net
 
 
 def set_dropout_p(module: nn.Module, p: float) -> None:
@@ -136,8 +132,9 @@ def acting(module: nn.Module, flag: bool = True) -> Iterator[nn.Module]:
 def dropout_schedule(frame: int, start: float = 0.5, end: float = 0.01, *, duration_frames: int) -> float:
     """``start`` -> ``end`` linearly over ``duration_frames`` collected frames, then ``end``.
 
-    SPEC's 7000 episodes are frames here: pass the frame count the trainer uses for its
-    ε schedule (``exploration.anneal_frames``-like), so all variants decay on the same clock.
+    Upstream's 7000 episodes are frames here (``docs/mdp.md``, "Exploration variants"): pass the
+    frame count the trainer uses for its ε schedule (``exploration.anneal_frames``-like), so all
+    variants decay on the same clock.
     """
     _check_p(start), _check_p(end)
     if duration_frames < 1:
@@ -151,7 +148,6 @@ __all__ = [
     "add_action_dropout",
     "dropout_layers",
     "dropout_schedule",
-    "make_dropout_q_network",
     "set_acting",
     "set_dropout_p",
 ]

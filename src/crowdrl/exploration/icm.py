@@ -1,6 +1,7 @@
 """Intrinsic Curiosity Module (Pathak et al., 2017) as an :class:`IntrinsicBonus`.
 
-Networks (``SPEC.md`` §4, ``A`` = number of actions, ``D`` = the feature encoder's width):
+Networks (``docs/mdp.md``, "Exploration variants"; ``A`` = number of actions, ``D`` = the feature
+encoder's width):
 
 * features ``phi(s) = head(encoder(obs...))``, ``head`` = Linear(D, 256)-ReLU-Linear(256, 128);
 * inverse model ``[phi(s), phi(s')]`` -> Linear(256, 256)-ReLU-Linear(256, 128)-ReLU-Linear(128, A),

@@ -1,9 +1,10 @@
-"""Noisy-net exploration for the dueling head (``SPEC.md`` §4; Fortunato et al. 2018).
+"""Noisy-net exploration for the head of a Q-network (Fortunato et al. 2018).
 
-Every ``nn.Linear`` of the :class:`~crowdrl.models.DuelingHead` becomes a
-:class:`FactorisedNoisyLinear`: ``w = mu_w + sigma_w * f(eps_out) f(eps_in)^T``,
-``b = mu_b + sigma_b * f(eps_out)``, ``f(x) = sign(x) sqrt|x|``, ``eps ~ N(0, 1)``; the encoder
-stays deterministic and ε-greedy is not used (ε = 0).
+:func:`noisify_head` turns every plain ``nn.Linear`` of a module (any ``nn.Module``; crowdrl's
+trainer passes the dueling head of its Q-network, see ``docs/mdp.md``, "Exploration variants")
+into a :class:`FactorisedNoisyLinear`: ``w = mu_w + sigma_w * f(eps_out) f(eps_in)^T``,
+``b = mu_b + sigma_b * f(eps_out)``, ``f(x) = sign(x) sqrt|x|``, ``eps ~ N(0, 1)``; whatever is
+outside that module (e.g. the encoder) stays deterministic, and ε-greedy is not used (ε = 0).
 
 When the noise is on, and why:
 
@@ -49,7 +50,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Iterator, TypeVar
 
 import torch
 from tensordict import TensorDictBase
@@ -57,8 +58,8 @@ from torch import nn
 from torchrl.modules import NoisyLinear
 
 from crowdrl.exploration._surgery import replace_children
-from crowdrl.models.dueling import DuelingHead
-from crowdrl.models.qnet import CrowdQNetwork, make_q_network
+
+M = TypeVar("M", bound=nn.Module)
 
 
 class FactorisedNoisyLinear(NoisyLinear):
@@ -86,16 +87,19 @@ class FactorisedNoisyLinear(NoisyLinear):
         return f"{super().extra_repr()}, sigma0={self.std_init}, noise_enabled={self.noise_enabled}"
 
 
-def noisify_head(head: DuelingHead, sigma0: float = 0.5) -> DuelingHead:
-    """Replace, in place, every plain ``nn.Linear`` of ``head`` (a :class:`DuelingHead`: trunk,
-    value and advantage layers, 6 in all) by a freshly initialised :class:`FactorisedNoisyLinear`
-    of the same shape, dtype and device; returns ``head``.
+def noisify_head(head: M, sigma0: float = 0.5) -> M:
+    """Replace, in place, every plain ``nn.Linear`` under ``head`` (any module; e.g. the 6 layers of
+    crowdrl's dueling head: trunk, value and advantage) by a freshly initialised
+    :class:`FactorisedNoisyLinear` of the same shape, dtype and device; returns ``head``.
 
     Call it before building the loss and the optimiser (they capture the parameters). The
-    ``state_dict`` keys of the replaced layers change (``weight`` -> ``weight_mu``, ...).
+    ``state_dict`` keys of the replaced layers change (``weight`` -> ``weight_mu``, ...). Only
+    ``nn.Linear`` child modules are seen (not subclasses, not ``F.linear`` calls); a ``head`` with
+    none is a ``ValueError``.
     """
     if not sigma0 >= 0:
         raise ValueError(f"sigma0 must be >= 0, got sigma0={sigma0}")
+
     def noisy(layer: nn.Module) -> nn.Module:
         w = layer.weight
         return FactorisedNoisyLinear(layer.in_features, layer.out_features, bias=layer.bias is not None,
@@ -103,16 +107,9 @@ def noisify_head(head: DuelingHead, sigma0: float = 0.5) -> DuelingHead:
 
     replaced = replace_children(head, lambda m: type(m) is nn.Linear, noisy)
     if replaced == 0:
-        raise ValueError(f"{type(head).__name__} has no plain nn.Linear layer to make noisy (already noisy?)")
+        raise ValueError(f"{type(head).__name__} has no plain nn.Linear child module to make noisy "
+                         "(already noisy, or no nn.Linear layers?)")
     return head
-
-
-def make_noisy_q_network(encoder_name: str = "sgd3qn", sigma0: float = 0.5, num_actions: int = 81,
-                         hidden: int = 128, **encoder_kwargs) -> CrowdQNetwork:
-    """:func:`~crowdrl.models.make_q_network` with a noisy dueling head (deterministic encoder)."""
-    net = make_q_network(encoder_name, num_actions=num_actions, hidden=hidden, **encoder_kwargs)
-    noisify_head(net.head, sigma0)
-    return net
 
 
 def noisy_layers(module: nn.Module) -> list[NoisyLinear]:
@@ -177,7 +174,6 @@ def noise_disabled(module: nn.Module) -> Iterator[nn.Module]:
 
 __all__ = [
     "FactorisedNoisyLinear",
-    "make_noisy_q_network",
     "noise_disabled",
     "noisify_head",
     "noisy_layers",

@@ -1,4 +1,4 @@
-"""The dueling Q head shared by every encoder (``SPEC.md`` §2)."""
+"""The dueling Q head shared by every encoder (``docs/mdp.md``, "Models")."""
 
 from __future__ import annotations
 

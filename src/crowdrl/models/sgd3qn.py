@@ -1,4 +1,4 @@
-"""SG-D3QN's graph attention encoder (``SPEC.md`` §2), optimised for CPU training.
+"""SG-D3QN's graph attention encoder (``docs/mdp.md``, "Models"), optimised for CPU training.
 
 Architecture (the authors' ``GAT_RL`` with skip connections):
 

@@ -1,4 +1,4 @@
-"""Constants of the crowd-navigation MDP (``SPEC.md`` §1), validated once at construction."""
+"""Constants of the crowd-navigation MDP (``docs/mdp.md``), validated once at construction."""
 
 from __future__ import annotations
 

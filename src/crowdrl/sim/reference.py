@@ -1,6 +1,6 @@
 """A deliberately plain, single-episode reference simulator (CrowdNav style).
 
-:class:`ReferenceCrowdSim` re-implements one episode of the MDP of ``SPEC.md`` §1 the way the
+:class:`ReferenceCrowdSim` re-implements one episode of the MDP of ``docs/mdp.md`` the way the
 reference implementations (CrowdNav, SG-D3QN) do it: python floats for the robot, small numpy
 float64 arrays for the humans, one loop iteration per agent, and the RVO2 C++ library
 (``pyrvo``, RVO2 2.0.3) for the humans' ORCA velocities. It shares no step code with the
@@ -71,7 +71,8 @@ def _import_pyrvo():
 
 
 def action_speed_rotation(action: int, v_pref: float) -> tuple[float, float]:
-    """(speed, rotation) of action ``action`` in ``0..80`` (``SPEC.md`` §1, 5 speeds x 16 rotations).
+    """(speed, rotation) of action ``action`` in ``0..80`` (5 speeds x 16 rotations, ``docs/mdp.md``,
+    "The robot").
 
     Index 0 stops; ``1 + 5*i_rot + j_speed`` moves at ``(j+1)/5 * v_pref`` after rotating by
     ``-pi/6 + i_rot * (pi/3)/15``.

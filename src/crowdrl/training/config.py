@@ -47,8 +47,9 @@ class EncoderConfig:
 
 @dataclass
 class ExplorationConfig:
-    """Exploration variant (SPEC §4). ``anneal_frames`` is the length of the ε schedule and of the
-    dropout-p schedule; ``eps_*`` apply to every variant (the non-ε variants set them to 0)."""
+    """Exploration variant (``docs/mdp.md``, "Exploration variants"). ``anneal_frames`` is the
+    length of the ε schedule and of the dropout-p schedule; ``eps_*`` apply to every variant (the
+    non-ε variants set them to 0)."""
 
     name: str = "egreedy"
     eps_start: float = 0.5
