@@ -1,4 +1,4 @@
-"""Episode metrics of the paper (``SPEC.md`` §5), computed from per-step records."""
+"""Episode metrics of the paper (``docs/mdp.md``, "Evaluation"), computed from per-step records."""
 
 from __future__ import annotations
 

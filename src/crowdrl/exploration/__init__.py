@@ -1,8 +1,9 @@
 """Intrinsic-reward exploration (ICM, RE3) as replay-buffer transforms, usable on any TorchRL env.
 
-Importing this package pulls in nothing from the crowd code (``crowdrl.sim``, ``crowdrl.envs``,
-``crowdrl.models``) by itself; keep it that way: crowd-specific submodules (e.g. the noisy and
-dropout Q-heads) are imported by their full name, not re-exported here.
+Nothing here imports the crowd code (``crowdrl.sim``, ``crowdrl.envs``, ``crowdrl.models``): the
+intrinsic bonuses work on any TorchRL env, and the noisy and dropout surgeries
+(:mod:`crowdrl.exploration.noisy`, :mod:`crowdrl.exploration.dropout`, imported by their full
+name) work on any ``nn.Module`` head. Keep it that way.
 """
 
 from crowdrl.exploration.icm import ICM
