@@ -22,6 +22,18 @@ os.environ.setdefault("WANDB_MODE", "offline")
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 
+def _register_resolvers() -> None:
+    """``${crowdrl_uid:}``: six random hex digits, the same within one process (run folder names:
+    two runs started in the same second never share a folder)."""
+    import secrets
+
+    if not OmegaConf.has_resolver("crowdrl_uid"):
+        OmegaConf.register_new_resolver("crowdrl_uid", lambda: secrets.token_hex(3), use_cache=True)
+
+
+_register_resolvers()
+
+
 def _register_schema() -> None:
     """Make every key of the typed schema overridable (``train.save_buffer=true``) and type-checked."""
     from hydra.core.config_store import ConfigStore
@@ -36,36 +48,69 @@ _register_schema()
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
-    from crowdrl.training import ConfigError, run_training, validate
+    from crowdrl.training import CheckpointError, ConfigError, run_training, validate
+    from crowdrl.training.pipeline import RunFolderBusy
+    from crowdrl.training.trainer import NonFiniteError
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         run = validate(cfg)
+        if run.resume:
+            cfg, run = resumed_config(cfg, Path(run.resume), HydraConfig.get().overrides.task)
     except ConfigError as exc:
         _discard_empty_run_dir(out_dir)
         print(f"invalid configuration: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     run_dir = Path(run.resume) if run.resume else out_dir
     if run.resume:
-        if not (run_dir / "checkpoints" / "last.pt").is_file():
-            _discard_empty_run_dir(out_dir)
-            print(f"resume={run.resume}: no checkpoints/last.pt there", file=sys.stderr)
-            raise SystemExit(2)
         _discard_empty_run_dir(out_dir)
     else:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    from crowdrl.training.trainer import NonFiniteError
-
     try:
         summary = run_training(run, run_dir)
+    except (CheckpointError, RunFolderBusy) as exc:  # refused before anything in the folder changed
+        print(f"cannot run in {run_dir}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     except NonFiniteError as exc:  # status.json says "failed" and why; no eval.json is written
         print(f"training failed: {exc} (run folder: {run_dir.resolve()})", file=sys.stderr)
         raise SystemExit(1) from None
+    except KeyboardInterrupt as exc:  # SIGTERM/SIGINT: checkpointed, status "interrupted"
+        print(f"interrupted ({exc}); resume with: python experiments/train.py resume={run_dir}", file=sys.stderr)
+        raise SystemExit(130) from None
     m = summary["test"]["metrics"]
     print(f"run folder: {run_dir.resolve()}")
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
           f"nav time {m['navigation_time']:.2f} s  return {m['average_return']:.4f}")
     return float(m["success_rate"])
+
+
+def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
+    """The run folder's own ``config.yaml`` (with ``resume`` set). Command-line overrides other than
+    ``resume`` and ``hydra.*`` must agree with it; any that do not are refused, by name."""
+    from crowdrl.training import ConfigError, validate
+
+    if not (run_dir / "checkpoints" / "last.pt").is_file():
+        raise ConfigError(f"resume={run_dir}: no checkpoints/last.pt there")
+    if not (run_dir / "config.yaml").is_file():
+        raise ConfigError(f"resume={run_dir}: no config.yaml there (not a run folder of train.py)")
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    conflicts = []
+    for item in overrides:
+        key = item.split("=", 1)[0].lstrip("+~")
+        if key == "resume" or key.startswith("hydra"):
+            continue
+        if key in ("env", "encoder", "exploration", "logger", "preset"):  # config groups: compare their content
+            same = OmegaConf.select(cfg, key) == OmegaConf.select(saved, key) if key != "preset" else \
+                cfg.get("preset") == saved.get("preset")
+        else:
+            same = OmegaConf.select(cfg, key) == OmegaConf.select(saved, key)
+        if not same:
+            conflicts.append(f"{item} (the run has {key}={OmegaConf.select(saved, key)})")
+    if conflicts:
+        raise ConfigError(f"resume={run_dir}: a resumed run keeps its own config.yaml; refused override(s): "
+                          + "; ".join(conflicts))
+    saved.resume = str(run_dir)
+    return saved, validate(saved)
 
 
 def _discard_empty_run_dir(path: Path) -> None:

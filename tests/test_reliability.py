@@ -74,3 +74,121 @@ def test_a_run_whose_weights_blow_up_fails_and_writes_no_result(tmp_path):
     status = json.loads((tmp_path / "run" / "status.json").read_text())
     assert status["state"] == "failed" and "non-finite" in status["error"]
     assert not (tmp_path / "run" / "eval.json").exists() and not (tmp_path / "run" / "summary.json").exists()
+
+
+# ----------------------------------------------------------------------------- run folders
+
+TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
+ENV = {**os.environ, "WANDB_MODE": "offline"}
+
+
+def folder_hashes(folder: Path) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(tmp_path_factory) -> list[Path]:
+    """Two finished smoke runs (seeds 0 and 1) made by train.py."""
+    base = tmp_path_factory.mktemp("runs")
+    procs = [subprocess.Popen([*TRAIN, "preset=smoke", "logger=csv", f"seed={s}", f"hydra.run.dir={base / f's{s}'}"],
+                              env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for s in (0, 1)]
+    for p in procs:
+        assert p.wait(timeout=300) == 0, p.stderr.read()[-2000:]
+    return [base / "s0", base / "s1"]
+
+
+@pytest.mark.parametrize("damage", ["truncated", "foreign"])
+def test_a_refused_resume_leaves_the_folder_byte_for_byte(smoke_runs, tmp_path, damage):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(smoke_runs[0], run)
+    last = run / "checkpoints" / "last.pt"
+    if damage == "truncated":
+        last.write_bytes(last.read_bytes()[:5000])
+    else:
+        shutil.copyfile(smoke_runs[1] / "checkpoints" / "last.pt", last)  # another run's (seed 1)
+    before = folder_hashes(run)
+    proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "last.pt" in proc.stderr, proc.stderr[-2000:]
+    assert folder_hashes(run) == before
+
+
+def test_resume_reads_the_folders_own_config_and_refuses_conflicting_overrides(smoke_runs, tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(smoke_runs[1], run)
+    proc = subprocess.run([*TRAIN, f"resume={run}", "seed=0"], env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "refused override(s): seed=0 (the run has seed=1)" in proc.stderr
+    proc = subprocess.run([*TRAIN, f"resume={run}", "seed=1", "preset=smoke"], env=ENV, capture_output=True,
+                          text=True, timeout=300)  # agreeing overrides and no others: the run's own config
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads((run / "status.json").read_text())["state"] == "completed"
+
+
+def test_another_runs_best_checkpoint_is_refused(smoke_runs, tmp_path):
+    import shutil
+
+    from crowdrl.training import CheckpointError, evaluate_best
+    from crowdrl.training.config import validate
+    from omegaconf import OmegaConf
+
+    run = tmp_path / "run"
+    shutil.copytree(smoke_runs[0], run)
+    shutil.copyfile(smoke_runs[1] / "checkpoints" / "best.pt", run / "checkpoints" / "best.pt")
+    (run / "eval.json").unlink()
+    with pytest.raises(CheckpointError, match="another configuration"):
+        evaluate_best(validate(OmegaConf.load(run / "config.yaml")), run, render=False)
+    assert not (run / "eval.json").exists()
+
+
+def test_sigterm_checkpoints_marks_interrupted_and_resumes(tmp_path):
+    import signal
+    import time
+
+    run = tmp_path / "run"
+    args = ["preset=smoke", "logger=csv", "train.total_frames=1024", "train.checkpoint_every_frames=100000"]
+    proc = subprocess.Popen([*TRAIN, *args, f"hydra.run.dir={run}"], env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        scalars = run / "scalars.jsonl"
+        if scalars.exists() and '"kind": "train"' in scalars.read_text():
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=120) == 130, proc.stderr.read()[-2000:]
+    status = json.loads((run / "status.json").read_text())
+    assert status["state"] == "interrupted"
+    assert (run / "scalars.csv").exists() and (run / "checkpoints" / "last.pt").exists()
+    assert not (run / "eval.json").exists()
+    proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["frames"] == 1024
+
+
+def test_a_second_writer_to_a_run_folder_is_refused(tmp_path):
+    from crowdrl.training.pipeline import RunFolderBusy, lock_run_dir
+
+    first = lock_run_dir(tmp_path)
+    with pytest.raises(RunFolderBusy, match="another process"):
+        lock_run_dir(tmp_path)
+    first.close()
+    lock_run_dir(tmp_path).close()  # free again once the holder is gone
+
+
+def test_run_folder_names_carry_a_per_process_random_suffix():
+    """Two runs started in the same second get different folders (`${crowdrl_uid:}` in conf/)."""
+    code = ("import runpy, sys; sys.argv=['x']; from omegaconf import OmegaConf; "
+            f"runpy.run_path({str(ROOT / 'experiments' / 'train.py')!r}, run_name='not_main'); "
+            "c=OmegaConf.create({'a':'${crowdrl_uid:}','b':'${crowdrl_uid:}'}); print(c.a, c.b)")
+    outs = [subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True, timeout=120).stdout.split()
+            for _ in range(2)]
+    assert outs[0][0] == outs[0][1] and outs[1][0] == outs[1][1]  # one value per process
+    assert outs[0][0] != outs[1][0] and len(outs[0][0]) == 6
+    assert "${crowdrl_uid:}" in (ROOT / "conf" / "config.yaml").read_text()

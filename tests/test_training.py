@@ -280,16 +280,6 @@ def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):
     assert not out.exists()
 
 
-def test_multirun_two_seeds(tmp_path):
-    proc = subprocess.run(TRAIN + ["-m", "preset=smoke", "logger=csv", "train.total_frames=64", "seed=0,1",
-                                   f"hydra.sweep.dir={tmp_path}"], env=_env(), capture_output=True, text=True,
-                          timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    statuses = sorted(tmp_path.glob("*/status.json"))
-    assert len(statuses) == 2
-    assert all(json.loads(p.read_text())["state"] == "completed" for p in statuses)
-
-
 def test_bench_train_reports_rates_and_ratios():
     """`experiments/bench_train.py` runs on a tiny budget and reports consistent figures (its --json)."""
     cmd = [sys.executable, str(ROOT / "experiments" / "bench_train.py"), "--updates", "2", "--batches", "1",

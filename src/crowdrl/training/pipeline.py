@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +26,12 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool = True) ->
     """Train (or resume) in ``run_dir``, then test the best policy; returns the summary."""
     run_dir = Path(run_dir)
     trainer = Trainer(run, run_dir)
+    trainer.restore()  # a refused resume raises here, before anything in the folder changes
+    lock = lock_run_dir(run_dir)
     start = time.perf_counter()
     try:
-        summary = trainer.train()
+        with stop_signals(trainer):
+            summary = trainer.train()
         result = evaluate_best(run, run_dir, render=render)
         summary = {**summary, "test": result, "wall_s": time.perf_counter() - start}
         trainer.emit({"kind": "test", "frames": trainer.counters.frames,
@@ -40,12 +44,59 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool = True) ->
         raise
     finally:
         trainer.close()
+        lock.close()
     if render:
         from crowdrl.viz import plot_learning_curves
 
         plot_learning_curves(trainer.log.rows(), run_dir / "learning_curves.png",
                              title=f"{run.encoder.name} + {run.exploration.name}, {run.env.scenario}, seed {run.seed}")
     return summary
+
+
+def lock_run_dir(run_dir: Path):
+    """An exclusive lock on ``run_dir/.lock`` for this process (released when it exits, even on a
+    kill): a second writer to the same run folder fails at once instead of mixing files."""
+    import fcntl
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    handle = open(run_dir / ".lock", "a")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise RunFolderBusy(f"{run_dir} is being written by another process; give this run its own folder") from None
+    return handle
+
+
+class RunFolderBusy(RuntimeError):
+    """Another process holds the run folder."""
+
+
+@contextmanager
+def stop_signals(trainer: Trainer):
+    """SIGTERM (sent by ``timeout``, ``kill`` and SLURM) and SIGINT ask the trainer to stop at the end
+    of its current batch, after a checkpoint; the run is then marked "interrupted" and resumable. A
+    second signal interrupts at once. Only in the main thread (signal handlers live there)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def handler(signum, frame):
+        if trainer.stop_requested:
+            raise KeyboardInterrupt(f"signal {signum}")
+        trainer.request_stop()
+
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def checkpoint_path(path: Path | str) -> Path:

@@ -85,6 +85,8 @@ class Trainer:
         self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames)
         self.log = None
         self.wandb = None
+        self._restored: dict[str, Any] | None = None
+        self._stop_requested = False
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -122,13 +124,36 @@ class Trainer:
         return path
 
     # ------------------------------------------------------------------ loop
-    def train(self) -> dict[str, Any]:
-        self.dir.mkdir(parents=True, exist_ok=True)
-        resume_data = None
+    def restore(self) -> dict[str, Any] | None:
+        """Load ``checkpoints/last.pt`` when the folder has one (a resume) and return it.
+
+        Raises :class:`CheckpointError` for a truncated, foreign or unloadable checkpoint before
+        anything is written: a refused resume leaves the folder as it was.
+        """
+        if self._restored is not None:
+            return self._restored or None
         last = self.ckpt_dir / "last.pt"
+        data: dict[str, Any] = {}
         if last.exists():
-            resume_data = load_checkpoint(last, self.fingerprint)
-            self.load_state_dict(resume_data)
+            data = load_checkpoint(last, self.fingerprint)
+            try:
+                self.load_state_dict(data)
+            except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+                raise CheckpointError(f"{last} cannot be restored into this run: {str(exc).splitlines()[0]}") from None
+        self._restored = data
+        return data or None
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop_requested
+
+    def request_stop(self) -> None:
+        """Stop at the end of the current batch, after a checkpoint (what SIGTERM and SIGINT do)."""
+        self._stop_requested = True
+
+    def train(self) -> dict[str, Any]:
+        resume_data = self.restore()
+        self.dir.mkdir(parents=True, exist_ok=True)
         run, t, c = self.run, self.run.train, self.counters
         self.log = ScalarLog(self.dir)
         dropped = self.log.truncate_after(self.counters.frames)
@@ -179,6 +204,10 @@ class Trainer:
                     self.save("last.pt")
                 if c.frames >= t.total_frames:
                     break
+                if self._stop_requested:
+                    c.last_checkpoint = c.frames
+                    self.save("last.pt")
+                    raise KeyboardInterrupt(f"stopped by a signal at frame {c.frames}; checkpoint saved")
                 tick = time.perf_counter()
         finally:
             collector.shutdown()
