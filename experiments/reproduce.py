@@ -136,7 +136,7 @@ def check_manifest(plan: Plan) -> None:
 def run_overrides(plan: Plan, variant: str) -> list[str]:
     """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
     return [f"preset={plan.budget}", f"exploration={variant}", f"env={plan.train_scenario}", "logger=csv",
-            "logger.progress_bar=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}"]
+            "logger.progress_bar=false", "logger.render=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}"]
 
 
 def is_trained(run_dir: Path) -> bool:

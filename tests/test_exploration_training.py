@@ -115,7 +115,7 @@ def test_bad_exploration_config_names_the_key(override, word):
 def test_multirun_sweeps_exploration_and_beta(tmp_path):
     """A 2 x 2 sweep (exploration x beta) end to end through Hydra's multirun."""
     env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONHASHSEED": "0"}
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), "-m", "preset=smoke", "logger=csv",
+    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), "-m", "preset=smoke", "logger=csv", "logger.render=false",
            "exploration=icm,re3", "exploration.beta=0.0,0.02", "train.total_frames=96", "train.test_episodes=2",
            "env.num_humans=4", f"hydra.sweep.dir={tmp_path}"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)

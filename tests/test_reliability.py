@@ -93,7 +93,7 @@ def folder_hashes(folder: Path) -> dict[str, str]:
 def smoke_runs(tmp_path_factory) -> list[Path]:
     """Two finished smoke runs (seeds 0 and 1) made by train.py."""
     base = tmp_path_factory.mktemp("runs")
-    procs = [subprocess.Popen([*TRAIN, "preset=smoke", "logger=csv", f"seed={s}", f"hydra.run.dir={base / f's{s}'}"],
+    procs = [subprocess.Popen([*TRAIN, "preset=smoke", "logger=csv", "logger.render=false", f"seed={s}", f"hydra.run.dir={base / f's{s}'}"],
                               env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for s in (0, 1)]
     for p in procs:
         assert p.wait(timeout=300) == 0, p.stderr.read()[-2000:]
@@ -151,7 +151,7 @@ def test_sigterm_checkpoints_marks_interrupted_and_resumes(tmp_path):
     import time
 
     run = tmp_path / "run"
-    args = ["preset=smoke", "logger=csv", "train.total_frames=1024", "train.checkpoint_every_frames=100000"]
+    args = ["preset=smoke", "logger=csv", "logger.render=false", "train.total_frames=1024", "train.checkpoint_every_frames=100000"]
     proc = subprocess.Popen([*TRAIN, *args, f"hydra.run.dir={run}"], env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300

@@ -235,7 +235,7 @@ def _rows(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in (run_dir / "scalars.jsonl").read_text().splitlines()]
 
 
-SMOKE = ["preset=smoke", "logger=csv", "train.total_frames=512", "train.checkpoint_every_frames=64",
+SMOKE = ["preset=smoke", "logger=csv", "logger.render=false", "train.total_frames=512", "train.checkpoint_every_frames=64",
          "train.save_buffer=true"]
 
 

@@ -70,6 +70,7 @@ class LoggerConfig:
     mode: str = "offline"  # wandb mode; WANDB_MODE in the environment overrides it
     project: str = "crowdrl"
     progress_bar: bool = True
+    render: bool = True  # after the test: learning_curves.png and a PNG + GIF of test case 0
 
 
 @dataclass

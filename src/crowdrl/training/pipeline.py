@@ -22,9 +22,12 @@ TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
 EVAL_BATCH = 1000  # episodes stepped at once by evaluation
 
 
-def run_training(run: RunConfig, run_dir: Path | str, *, render: bool = True) -> dict[str, Any]:
-    """Train (or resume) in ``run_dir``, then test the best policy; returns the summary."""
+def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None) -> dict[str, Any]:
+    """Train (or resume) in ``run_dir``, then test the best policy; returns the summary.
+
+    ``render`` (default ``run.logger.render``) draws the learning curves and test case 0."""
     run_dir = Path(run_dir)
+    render = run.logger.render if render is None else render
     trainer = Trainer(run, run_dir)
     trainer.restore()  # a refused resume raises here, before anything in the folder changes
     lock = lock_run_dir(run_dir)
