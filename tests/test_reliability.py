@@ -192,3 +192,19 @@ def test_run_folder_names_carry_a_per_process_random_suffix():
     assert outs[0][0] == outs[0][1] and outs[1][0] == outs[1][1]  # one value per process
     assert outs[0][0] != outs[1][0] and len(outs[0][0]) == 6
     assert "${crowdrl_uid:}" in (ROOT / "conf" / "config.yaml").read_text()
+
+
+def test_orca_backend_is_a_validated_config_key_that_reaches_the_env():
+    from crowdrl.training.checkpoint import config_fingerprint
+    from crowdrl.training.config import to_dict
+    from crowdrl.training.factories import make_env
+
+    run = smoke()
+    run.env.orca_backend = "warp"
+    with pytest.raises(ConfigError, match="env.orca_backend.*allowed: eager, compiled"):
+        validate(run)
+    run.env.orca_backend = "compiled"
+    env = make_env(validate(run), split="val", num_envs=2)
+    assert env.base_env.config.orca_backend == "compiled"
+    eager = smoke()
+    assert config_fingerprint(to_dict(run)) == config_fingerprint(to_dict(eager))  # same numbers: resumable across
