@@ -132,6 +132,14 @@ def test_evaluate_cli_on_a_checkpoint_equals_its_training_test(reproduced, tmp_p
     for key in ("success_rate", "collision_rate", "timeout_rate", "average_return", "discomfort_frequency"):
         assert rec[key] == trained[key], key
     assert rec["policy"] == "sgd3qn+re3" and rec["train_seed"] == 1
+    proc = run([*EVALUATE, f"checkpoint={run_dir / 'checkpoints' / 'best.pt'}", "env=square", "eval.episodes=6",
+                "eval.record_episode=2", f"hydra.run.dir={tmp_path / 'sq'}"])  # zero-shot on square, from the .pt
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    square = json.loads((tmp_path / "sq" / "eval.json").read_text())
+    in_reproduce = json.loads((run_dir / "eval-square" / "eval.json").read_text())
+    assert square["scenario"] == "square" and square["train_scenario"] == "circle"
+    assert square["success_rate"] == in_reproduce["success_rate"] and square["average_return"] == in_reproduce["average_return"]
+    assert (tmp_path / "sq" / "square_case2.gif").exists()
 
 
 @pytest.mark.parametrize("args, key", [
