@@ -21,7 +21,9 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
+import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,14 +164,18 @@ def _run(cmd: list[str], log: Path) -> None:
         raise RuntimeError(f"exit {proc.returncode}: {' '.join(cmd[1:3])} ... (log: {log})")
 
 
+EVAL_LOCK = threading.Lock()  # evaluations run in this process, one at a time (torchrl keeps global state)
+
+
 def evaluate_into(folder: Path, *, checkpoint: Path | None = None, policy: str | None = None, scenario: str,
                   episodes: int) -> None:
     """Test a checkpoint or a baseline on ``episodes`` cases (test seed 0) and write ``folder/eval.json``
-    (in this process: the evaluation is short next to training)."""
+    (in this process, while other runs train in theirs: the evaluation is short next to training)."""
     from crowdrl.evaluation.report import write_records
     from crowdrl.training.pipeline import evaluate_spec
 
-    record, _ = evaluate_spec(checkpoint=checkpoint, policy=policy, scenario=scenario, episodes=episodes)
+    with EVAL_LOCK:
+        record, _ = evaluate_spec(checkpoint=checkpoint, policy=policy, scenario=scenario, episodes=episodes)
     write_records(folder, [record])
 
 
@@ -377,7 +383,8 @@ def reproduce(plan: Plan) -> dict[str, Any]:
                 future.result()
                 print(f"  done: {what} {which}", flush=True)
             except Exception as exc:  # keep the other runs going; report at the end
-                failures.append(f"{what} {which}: {exc}")
+                print(f"  FAILED: {what} {which}:\n{traceback.format_exc()}", file=sys.stderr, flush=True)
+                failures.append(f"{what} {which}: {exc!r}")
     if failures:
         raise RuntimeError("some runs failed (rerun to resume them):\n  " + "\n  ".join(failures))
     rows = table_rows(plan, collect(plan))
