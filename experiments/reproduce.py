@@ -298,8 +298,14 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
              "P(improve): probability that the variant's success rate beats ε-greedy's on a random pair of seeds "
              "[95 % CI]. ORCA is deterministic: one evaluation.",
              ""]
+    run_minutes = [json.loads((plan.run_dir(v, s) / "summary.json").read_text())["wall_s"] / 60
+                   for v in plan.variants for s in plan.seeds if (plan.run_dir(v, s) / "summary.json").exists()]
+    if run_minutes:
+        lines += [f"Training + validation + circle test per run (`summary.json`): {min(run_minutes):.1f}–"
+                  f"{max(run_minutes):.1f} min, {plan.jobs if plan.launcher == 'local' else 'SLURM'} at a time."]
     if wall_s is not None:
-        lines += [f"Wall-clock of the last `reproduce.py` call: {wall_s / 60:.1f} min.", ""]
+        lines += [f"Wall-clock of the `reproduce.py` call that trained the last runs: {wall_s / 60:.1f} min."]
+    lines.append("")
     for scenario in plan.scenarios:
         lines += [f"## {scenario}", "",
                   "| method | seeds | success | collision | nav time (s) | avg return | P(improve on ε-greedy) |",
