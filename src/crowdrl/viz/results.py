@@ -11,6 +11,7 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
 PAPER_SMOOTHING = 0.99  # the paper's exponential smoothing of training curves
 
@@ -84,6 +85,7 @@ def plot_seed_curves(runs: dict[str, list[list[dict[str, Any]]]], path: Path | s
             ax.plot(grid, mean, color=colors(k % 10), lw=1.8, label=f"{method} ({len(curves)} seeds)")
             ax.fill_between(grid, lo, hi, color=colors(k % 10), alpha=0.18, lw=0)
         ax.set_xlabel("frames (robot steps)")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
         ax.set_ylabel(label)
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
