@@ -23,12 +23,9 @@ CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 
 def _register_resolvers() -> None:
-    """``${crowdrl_uid:}``: six random hex digits, the same within one process (run folder names:
-    two runs started in the same second never share a folder)."""
-    import secrets
+    from crowdrl.training.config import register_resolvers
 
-    if not OmegaConf.has_resolver("crowdrl_uid"):
-        OmegaConf.register_new_resolver("crowdrl_uid", lambda: secrets.token_hex(3), use_cache=True)
+    register_resolvers()
 
 
 _register_resolvers()

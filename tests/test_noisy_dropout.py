@@ -219,12 +219,15 @@ def test_reset_noise_on_a_module_holding_online_and_target_copies():
     net = _noisy_net()
     pair = nn.ModuleDict({"net": net, "target_net": copy.deepcopy(net).requires_grad_(False)})
     obs = _obs()
+    # allclose, not equal: the pairwise kernel is compiled lazily per module, and which kernel each
+    # copy gets (static or dynamic shapes) depends on what earlier tests compiled (last-bit rounding)
+    close = dict(rtol=1e-5, atol=1e-6)
     with torch.no_grad():
-        assert torch.equal(pair["net"](*obs), pair["target_net"](*obs))  # the copy carries the noise
+        assert torch.allclose(pair["net"](*obs), pair["target_net"](*obs), **close)  # the copy carries the noise
         reset_noise(pair)
-        assert not torch.allclose(pair["net"](*obs), pair["target_net"](*obs))
+        assert not torch.allclose(pair["net"](*obs), pair["target_net"](*obs), rtol=1e-3, atol=1e-3)
         with noise_disabled(pair):
-            assert torch.equal(pair["net"](*obs), pair["target_net"](*obs))
+            assert torch.allclose(pair["net"](*obs), pair["target_net"](*obs), **close)
 
 
 # -------------------------------------------------------------------------------------- dropout

@@ -109,6 +109,15 @@ class RunConfig:
     run_dir: str | None = None
 
 
+def register_resolvers() -> None:
+    """``${crowdrl_uid:}`` for ``conf/``: six random hex digits, the same for every use within one
+    config (run folder names: two runs started in the same second never share a folder)."""
+    import secrets
+
+    if not OmegaConf.has_resolver("crowdrl_uid"):
+        OmegaConf.register_new_resolver("crowdrl_uid", lambda: secrets.token_hex(3), use_cache=True)
+
+
 def _check(cond: bool, key: str, msg: str) -> None:
     if not cond:
         raise ConfigError(f"{key}: {msg}")

@@ -121,7 +121,7 @@ def plot_intervals(rows: list[dict[str, Any]], path: Path | str, *, metric: str 
         ax.set_title(scenario)
         ax.grid(alpha=0.3, axis="x")
         if s == 0:
-            ax.legend(fontsize=7, loc="lower left")
+            ax.legend(fontsize=7, loc="center left")
     if title:
         fig.suptitle(title)
     fig.tight_layout()
