@@ -30,21 +30,21 @@ def main(cfg: DictConfig) -> dict:
     import torch
 
     from crowdrl.evaluation.report import markdown_table, write_records
-    from crowdrl.training import CheckpointError
+    from crowdrl.training import CheckpointError, ConfigError
+    from crowdrl.training.config import check_device
     from crowdrl.training.pipeline import evaluate_spec
 
     out = Path(HydraConfig.get().runtime.output_dir)
     c = OmegaConf.to_container(cfg, resolve=True)
     try:  # (unknown keys never get here: Hydra refuses them, naming them)
-        if c["device"] != "cpu" and not (str(c["device"]).startswith("cuda") and torch.cuda.is_available()):
-            raise ValueError(f"device: {c['device']!r} is not available here (cuda available: {torch.cuda.is_available()})")
+        check_device(str(c["device"]))
         torch.set_num_threads(int(c["threads"]))
         scenario = (c.get("env") or {}).get("scenario")  # env=<name> selects conf/env/<name>.yaml
         e = c["eval"]
         record, traj = evaluate_spec(checkpoint=c["checkpoint"], policy=c["policy"], scenario=scenario, seed=e["seed"],
                                      episodes=e["episodes"], num_humans=e["num_humans"], batch=e["batch"],
                                      record_episode=e["record_episode"], device=c["device"])
-    except (ValueError, CheckpointError) as exc:
+    except (ValueError, ConfigError, CheckpointError) as exc:
         print(f"evaluate.py: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     write_records(out, [record])
