@@ -141,13 +141,14 @@ def test_sigterm_checkpoints_marks_interrupted_and_resumes(tmp_path):
     import time
 
     run = tmp_path / "run"
-    args = ["preset=smoke", "logger=csv", "logger.render=false", "train.total_frames=1024", "train.checkpoint_every_frames=100000"]
+    args = ["preset=smoke", "logger=csv", "logger.render=false", "train.total_frames=640",
+            "train.checkpoint_every_frames=100000"]
     proc = subprocess.Popen([*TRAIN, *args, f"hydra.run.dir={run}"], env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
         scalars = run / "scalars.jsonl"
-        if scalars.exists() and '"kind": "train"' in scalars.read_text():
+        if scalars.exists() and '"kind": "val"' in scalars.read_text():  # the first validation: 128 frames
             break
         time.sleep(0.2)
     proc.send_signal(signal.SIGTERM)
@@ -159,7 +160,7 @@ def test_sigterm_checkpoints_marks_interrupted_and_resumes(tmp_path):
     proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["frames"] == 1024
+    assert summary["frames"] == 640
 
 
 def test_a_second_writer_to_a_run_folder_is_refused(tmp_path):
