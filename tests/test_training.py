@@ -239,6 +239,7 @@ SMOKE = ["preset=smoke", "logger=csv", "logger.render=false", "train.total_frame
          "train.save_buffer=true"]
 
 
+@pytest.mark.slow  # ~1 min; the fast suite kills and resumes runs through reproduce.py (tests/test_reproduce.py)
 def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
     ref_dir, run_dir = tmp_path / "ref", tmp_path / "run"
     subprocess.run(TRAIN + SMOKE + [f"hydra.run.dir={ref_dir}"], check=True, env=_env(), capture_output=True,
