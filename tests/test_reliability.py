@@ -136,6 +136,7 @@ def test_another_runs_best_checkpoint_is_refused(smoke_runs, tmp_path):
     assert not (run / "eval.json").exists()
 
 
+@pytest.mark.slow  # ~40 s (two train.py processes); make test-slow
 def test_sigterm_checkpoints_marks_interrupted_and_resumes(tmp_path):
     import signal
     import time
