@@ -1,0 +1,113 @@
+"""Inject the faults a cluster and its users produce into `train.py` and print what happens.
+
+    python experiments/faults.py            # a table: fault, expected, observed, ok
+    python experiments/faults.py --json
+
+Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (about a minute in
+all on 2 cores). The same behaviours are asserted in `tests/test_reliability.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
+SMOKE = ["preset=smoke", "logger=csv", "logger.render=false"]
+ENV = {**os.environ, "WANDB_MODE": "offline"}
+
+
+def train(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([*TRAIN, *args], env=ENV, capture_output=True, text=True, timeout=timeout)
+
+
+def last_line(text: str) -> str:
+    lines = [line for line in text.strip().splitlines() if line.strip()]
+    return lines[-1][:110] if lines else ""
+
+
+def hashes(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def status(folder: Path) -> str:
+    path = folder / "status.json"
+    return json.loads(path.read_text())["state"] if path.exists() else "(none)"
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    rows: list[dict] = []
+    scratch = Path(tempfile.mkdtemp(prefix="crowdrl-faults-"))
+
+    def record(fault: str, expected: str, observed: str, ok: bool) -> None:
+        rows.append({"fault": fault, "expected": expected, "observed": observed, "ok": bool(ok)})
+
+    for override in ("train.lr=inf", "exploration.beta=nan", "device=cuda", "train.batch_size=5000"):
+        folder = scratch / override.replace("=", "-")
+        proc = train(*SMOKE, override, f"hydra.run.dir={folder}")
+        record(override, "exit 2 at start naming the key, no run folder",
+               f"exit {proc.returncode}: {last_line(proc.stderr)}",
+               proc.returncode == 2 and override.split("=")[0] in proc.stderr and not (folder / "config.yaml").exists())
+
+    blown = scratch / "nan"
+    proc = train(*SMOKE, "train.lr=1e30", f"hydra.run.dir={blown}")
+    record("train.lr=1e30 (weights blow up)", "exit 1, status failed, no eval.json",
+           f"exit {proc.returncode}, status {status(blown)}, eval.json {(blown / 'eval.json').exists()}",
+           proc.returncode == 1 and status(blown) == "failed" and not (blown / "eval.json").exists())
+
+    done = scratch / "done"
+    train(*SMOKE, f"hydra.run.dir={done}")
+    cut = scratch / "cut"
+    shutil.copytree(done, cut)
+    last = cut / "checkpoints" / "last.pt"
+    last.write_bytes(last.read_bytes()[:5000])
+    before = hashes(cut)
+    proc = train(f"resume={cut}")
+    record("resume from a truncated last.pt", "exit 2, folder byte for byte unchanged",
+           f"exit {proc.returncode}, unchanged {hashes(cut) == before}", proc.returncode == 2 and hashes(cut) == before)
+
+    proc = train(f"resume={done}", "seed=5")
+    record("resume with a conflicting override (seed=5)", "exit 2 naming the override",
+           f"exit {proc.returncode}: {last_line(proc.stderr)}", proc.returncode == 2 and "seed=5" in proc.stderr)
+
+    term = scratch / "sigterm"
+    proc = subprocess.Popen([*TRAIN, *SMOKE, "train.total_frames=640", "train.checkpoint_every_frames=100000",
+                             f"hydra.run.dir={term}"], env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if (term / "scalars.jsonl").exists() and '"kind": "val"' in (term / "scalars.jsonl").read_text():
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    code = proc.wait(timeout=300)
+    record("SIGTERM during training", "exit 130, status interrupted, last.pt written",
+           f"exit {code}, status {status(term)}, last.pt {(term / 'checkpoints' / 'last.pt').exists()}",
+           code == 130 and status(term) == "interrupted" and (term / "checkpoints" / "last.pt").exists())
+
+    shutil.rmtree(scratch, ignore_errors=True)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        print(f"{'fault':<44} {'expected':<44} {'ok':<3} observed")
+        for r in rows:
+            print(f"{r['fault']:<44} {r['expected']:<44} {'yes' if r['ok'] else 'NO':<3} {r['observed']}")
+    return rows
+
+
+if __name__ == "__main__":
+    rows = main(sys.argv[1:])
+    raise SystemExit(0 if all(r["ok"] for r in rows) else 1)
