@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict.nn import TensorDictModule
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
@@ -138,18 +137,13 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     return run, net, data
 
 
-def greedy_actor(run: RunConfig, net: torch.nn.Module, env) -> TensorDictModule:
-    """The run's Q actor around a trained ``net`` (greedy; acts on ``env``'s specs)."""
-    return make_actor(run, env, net)
-
-
 def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | None = None, seed: int = TEST_SEED,
                      episodes: int = 1000, num_humans: int | None = None, record_episode: int | None = None,
                      batch: int = EVAL_BATCH) -> tuple[EpisodeMetrics, Trajectory | None]:
     """Test ``net`` on ``episodes`` cases of the test stream ``seed`` (the run's scenario by default)."""
     env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario,
                    num_humans=num_humans)
-    return evaluate(env, greedy_actor(run, net, env), num_episodes=episodes, record_episode=record_episode)
+    return evaluate(env, make_actor(run, env, net), num_episodes=episodes, record_episode=record_episode)
 
 
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:

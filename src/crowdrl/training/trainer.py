@@ -244,7 +244,7 @@ class Trainer:
         total = 0.0
         for _ in range(n):
             total += self.update_once(self.buffer.sample())
-        if n and not all(bool(torch.isfinite(p).all()) for p in self.net.parameters()):
+        if n and not bool(torch.stack([torch.isfinite(p).all() for p in self.net.parameters()]).all()):  # one sync
             raise NonFiniteError(f"the Q network's weights became non-finite by update {c.updates} "
                                  f"(frame {c.frames}); lower train.lr or check the rewards")
         return total / max(n, 1)
