@@ -3,8 +3,9 @@
     python experiments/faults.py            # a table: fault, expected, observed, ok
     python experiments/faults.py --json
 
-Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (about a minute in
-all on 2 cores). The same behaviours are asserted in `tests/test_reliability.py`.
+Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (a few minutes in
+all on 2 cores). A run killed (SIGKILL or SIGTERM) and resumed with `train.save_buffer=true` must
+end with the same weights and test metrics, bit for bit, as the run that was never stopped. The same behaviours are asserted in `tests/test_reliability.py`.
 """
 
 from __future__ import annotations
@@ -44,6 +45,37 @@ def hashes(folder: Path) -> dict[str, str]:
 def status(folder: Path) -> str:
     path = folder / "status.json"
     return json.loads(path.read_text())["state"] if path.exists() else "(none)"
+
+
+def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, at_frames: int) -> int:
+    """Start a run, send ``sig`` once its last.pt holds ``at_frames`` frames or more; the frames it held."""
+    import torch
+
+    proc = subprocess.Popen([*TRAIN, *args, f"hydra.run.dir={folder}"], env=ENV,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    last = folder / "checkpoints" / "last.pt"
+    deadline, frames = time.time() + 300, 0
+    while time.time() < deadline and proc.poll() is None:
+        try:
+            frames = torch.load(last, weights_only=False)["counters"]["frames"] if last.exists() else 0
+        except Exception:  # written atomically, but a read can race the rename
+            frames = 0
+        if frames >= at_frames:
+            break
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    proc.wait(timeout=300)
+    return frames
+
+
+def same_result(a: Path, b: Path) -> tuple[bool, bool]:
+    """(final weights bit-identical, test metrics identical) of two finished run folders."""
+    import torch
+
+    wa, wb = (torch.load(f / "checkpoints" / "last.pt", weights_only=False)["loss"] for f in (a, b))
+    weights = wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    ma, mb = (json.loads((f / "eval.json").read_text())["metrics"] for f in (a, b))
+    return weights, ma == mb
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -97,6 +129,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
     record("SIGTERM during training", "exit 130, status interrupted, last.pt written",
            f"exit {code}, status {status(term)}, last.pt {(term / 'checkpoints' / 'last.pt').exists()}",
            code == 130 and status(term) == "interrupted" and (term / "checkpoints" / "last.pt").exists())
+
+    exact = [*SMOKE, "train.total_frames=512", "train.save_buffer=true"]
+    ref = scratch / "uninterrupted"
+    train(*exact, f"hydra.run.dir={ref}")
+    for sig in (signal.SIGKILL, signal.SIGTERM):
+        folder = scratch / f"killed-{sig.name}"
+        frames = kill_when_checkpointed(exact, folder, sig, at_frames=192)
+        proc = train(f"resume={folder}")
+        same_weights, same_metrics = same_result(ref, folder)
+        record(f"{sig.name} at frame >= {frames}, resume (save_buffer=true)",
+               "bit-identical final weights and test metrics",
+               f"exit {proc.returncode}, weights {'same' if same_weights else 'DIFFER'}, "
+               f"metrics {'same' if same_metrics else 'DIFFER'}",
+               proc.returncode == 0 and same_weights and same_metrics)
 
     shutil.rmtree(scratch, ignore_errors=True)
     if args.json:

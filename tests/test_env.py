@@ -148,3 +148,50 @@ def test_env_runs_in_a_torchrl_collector_with_auto_reset():
     # the step after an episode's end starts a fresh episode at the robot's start pose
     torch.testing.assert_close(after["robot"][:2], torch.tensor([0.0, -4.0]))
     assert after["episode_id"].item() > batch[env_i, t]["episode_id"].item()
+
+
+def test_step_count_and_episode_reward_count_from_each_reset():
+    env = CrowdNavEnv("circle", num_envs=8, num_humans=5)
+    td = env.rollout(60, break_when_any_done=False)  # auto-resets the envs that finish
+    nxt = td["next"]
+    steps, total = torch.zeros(8, dtype=torch.int64), torch.zeros(8)
+    for t in range(60):
+        steps, total = steps + 1, total + nxt["reward"][:, t, 0]
+        assert torch.equal(nxt["step_count"][:, t, 0], steps)
+        torch.testing.assert_close(nxt["episode_reward"][:, t, 0], total)
+        done = nxt["done"][:, t, 0]
+        steps, total = torch.where(done, 0, steps), torch.where(done, 0.0, total)
+    assert bool(nxt["done"].any()), "no episode ended: the test did not cover a reset"
+
+
+def test_a_restored_snapshot_continues_the_episodes_exactly():
+    """Snapshot mid-episode, restore into a new env: its first reset hands back the same
+    observations, and the same actions give the same steps, auto-resets included."""
+    gen = torch.Generator().manual_seed(3)
+    actions = torch.randint(0, 81, (80, 6), generator=gen)
+    env = CrowdNavEnv("square", num_envs=6, num_humans=5, seed=4)
+    td = env.reset()
+    for t in range(25):
+        _, td = env.step_and_maybe_reset(td.set("action", actions[t]))
+    saved = env.snapshot()
+    twin = CrowdNavEnv("square", num_envs=6, num_humans=5, seed=4)
+    twin.restore(saved)
+    td2 = twin.reset()
+    assert (td.exclude("action") == td2).all()
+    for t in range(25, 80):
+        out, td = env.step_and_maybe_reset(td.set("action", actions[t]))
+        out2, td2 = twin.step_and_maybe_reset(td2.set("action", actions[t]))
+        assert (out == out2).all(), f"step {t}"
+    assert twin.next_episode == env.next_episode > 6
+
+
+@pytest.mark.parametrize("change, word", [({"seed": 5}, "seed"), ({"split": "val"}, "split"),
+                                          ({"num_envs": 3}, "num_envs"), ({"num_humans": 4}, "num_humans")])
+def test_a_snapshot_of_another_env_is_refused_naming_what_differs(change, word):
+    env = CrowdNavEnv("circle", **{"num_envs": 2, "num_humans": 5, "seed": 0, "split": "train"})
+    env.reset()
+    other = CrowdNavEnv("circle", **{"num_envs": 2, "num_humans": 5, "seed": 0, "split": "train", **change})
+    with pytest.raises(ValueError, match=word):
+        other.restore(env.snapshot())
+    with pytest.raises(ValueError, match="snapshot"):
+        other.restore({"format": 0})

@@ -202,3 +202,66 @@ def test_orca_backend_is_a_validated_config_key_that_reaches_the_env():
     assert env.base_env.config.orca_backend == "compiled"
     eager = smoke()
     assert config_fingerprint(to_dict(run)) == config_fingerprint(to_dict(eager))  # same numbers: resumable across
+
+
+# ----------------------------------------------------------------------------- exact resume
+
+class _Killed(BaseException):
+    """Stands in for SIGKILL: the process dies mid-update, nothing after it is written."""
+
+
+EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "preset": "smoke",
+         "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 320, "buffer_size": 1000, "batch_size": 16,
+                   "warmup_frames": 32, "updates_per_frame": 0.25, "target_update_frames": 64, "val_every_frames": 96,
+                   "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 8, "save_buffer": True},
+         "env": {"num_humans": 4}}
+
+
+def _exact_run(name: str) -> RunConfig:
+    cfg = json.loads(json.dumps(EXACT))
+    cfg["exploration"] = {"name": name, "anneal_frames": 320}
+    return validate(cfg)
+
+
+def _final(run_dir: Path) -> tuple[dict, dict, list]:
+    from crowdrl.training.checkpoint import load_checkpoint
+
+    last = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    rows = [{k: v for k, v in json.loads(line).items() if not k.startswith("time/")}
+            for line in (run_dir / "scalars.jsonl").read_text().splitlines()]
+    return last["loss"], json.loads((run_dir / "eval.json").read_text())["metrics"], rows
+
+
+@pytest.mark.parametrize("name", ["egreedy", "noisy", "icm", pytest.param("dropout", marks=pytest.mark.slow),
+                                  pytest.param("re3", marks=pytest.mark.slow)])
+def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, monkeypatch, name):
+    """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
+    resumed by a new trainer: the same final weights (online, target, optimizer), the same test
+    metrics and the same logged rows (time columns aside) as the run that was never stopped."""
+    from crowdrl.training.pipeline import run_training
+    from crowdrl.training.trainer import Trainer
+
+    run = _exact_run(name)
+    run_training(run, tmp_path / "ref", render=False)
+
+    update_once = Trainer.update_once
+
+    def dies_at_frame_224(self, sample):
+        if self.counters.frames == 224:
+            raise _Killed
+        return update_once(self, sample)
+
+    monkeypatch.setattr(Trainer, "update_once", dies_at_frame_224)
+    with pytest.raises(_Killed):
+        run_training(run, tmp_path / "run", render=False)
+    monkeypatch.setattr(Trainer, "update_once", update_once)
+    assert torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)["counters"]["frames"] == 192
+    run_training(run, tmp_path / "run", render=False)
+
+    ref_weights, ref_metrics, ref_rows = _final(tmp_path / "ref")
+    weights, metrics, rows = _final(tmp_path / "run")
+    assert ref_weights.keys() == weights.keys()
+    differing = [k for k in ref_weights if not torch.equal(ref_weights[k], weights[k])]
+    assert not differing, f"weights differ after the resume: {differing[:5]}"
+    assert metrics == ref_metrics
+    assert rows == ref_rows

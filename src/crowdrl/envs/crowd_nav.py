@@ -37,6 +37,13 @@ class CrowdNavEnv(EnvBase):
     queued with :meth:`load_episodes` (or the reset tensordict of the bare env carries
     ``"load_episode"`` ``[B, 1]``), in which case those episodes are loaded (episode ``i`` is the
     same whatever ``num_envs`` or device).
+
+    :meth:`snapshot` and :meth:`restore` save and reload the in-flight episodes for an exact
+    resume: after ``restore``, the next reset hands back the episodes as they were, so a new
+    collector continues them step for step::
+
+        saved = env.snapshot()          # e.g. into a checkpoint
+        env2.restore(saved); env2.reset()  # the same observations, the same future
     """
 
     def __init__(
@@ -73,6 +80,7 @@ class CrowdNavEnv(EnvBase):
         self._seed = 0
         self._next_episode = 0
         self._queued: torch.Tensor | None = None
+        self._restored: dict[str, torch.Tensor] | None = None
         self._actions = action_table(config.robot_v_pref, dtype=dtype, device=self.device)
         self.state: CrowdState | None = None
         self._make_specs()
@@ -108,6 +116,38 @@ class CrowdNavEnv(EnvBase):
             raise ValueError("episode_ids must be >= 0")
         self._queued = ids.clone()
 
+    SNAPSHOT_FORMAT = 1
+
+    def snapshot(self) -> dict:
+        """The in-flight episodes (state, ids, per-step info, returns so far) and the stream position,
+        as CPU tensors: what :meth:`restore` needs for the episodes to continue exactly."""
+        if self.state is None:
+            raise RuntimeError("CrowdNavEnv.snapshot() called before reset()")
+        min_sep, discomfort, event = self._last
+        tensors = {f"state.{name}": getattr(self.state, name) for name in CrowdState.__dataclass_fields__}
+        tensors.update(episode_id=self._episode_id, episode_reward=self._return, min_separation=min_sep,
+                       discomfort_count=discomfort, event=event)
+        return {"format": self.SNAPSHOT_FORMAT, "split": self.split, "seed": self._seed,
+                "num_envs": self.num_envs, "num_humans": self.num_humans, "next_episode": self._next_episode,
+                "tensors": {k: v.detach().to("cpu", copy=True) for k, v in tensors.items()}}
+
+    def restore(self, snapshot: dict) -> None:
+        """Load a :meth:`snapshot`; the next full reset (no ``_reset`` mask, no episodes queued) returns its
+        episodes as they were instead of starting new ones. Raises ``ValueError`` naming what
+        does not match this env (split, seed, batch, crowd size, dtype)."""
+        if not isinstance(snapshot, dict) or snapshot.get("format") != self.SNAPSHOT_FORMAT:
+            raise ValueError(f"not a CrowdNavEnv snapshot of format {self.SNAPSHOT_FORMAT}")
+        mine = {"split": self.split, "seed": self._seed, "num_envs": self.num_envs, "num_humans": self.num_humans}
+        for key, value in mine.items():
+            if snapshot.get(key) != value:
+                raise ValueError(f"the snapshot's {key} is {snapshot.get(key)!r}, this env's {value!r}")
+        tensors = snapshot["tensors"]
+        fields = {name: tensors[f"state.{name}"] for name in CrowdState.__dataclass_fields__}
+        if fields["robot_position"].dtype != self.dtype:
+            raise ValueError(f"the snapshot's dtype is {fields['robot_position'].dtype}, this env's {self.dtype}")
+        self._restored = {k: v.to(self.device, copy=True) for k, v in tensors.items()}
+        self._next_episode = int(snapshot["next_episode"])
+
     def _make_specs(self) -> None:
         B, N, dev = self.num_envs, self.config.num_humans, self.device
         self.observation_spec = Composite(
@@ -117,6 +157,8 @@ class CrowdNavEnv(EnvBase):
             discomfort_count=Unbounded((B, 1), dtype=torch.int64, device=dev),
             event=Categorical(4, (B, 1), dtype=torch.int64, device=dev),
             episode_id=Unbounded((B, 1), dtype=torch.int64, device=dev),
+            step_count=Unbounded((B, 1), dtype=torch.int64, device=dev),
+            episode_reward=Unbounded((B, 1), dtype=self.dtype, device=dev),
             human_goals=Unbounded((B, N, 2), dtype=self.dtype, device=dev),
             shape=(B,),
             device=dev,
@@ -143,6 +185,7 @@ class CrowdNavEnv(EnvBase):
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         self._seed = int(seed)
         self._next_episode = 0
+        self._restored = None  # a new stream starts over
         return seed
 
     def _observation(self, state: CrowdState, min_sep, discomfort, event, episode_id) -> TensorDict:
@@ -155,6 +198,8 @@ class CrowdNavEnv(EnvBase):
                 "discomfort_count": discomfort.unsqueeze(-1),
                 "event": event.unsqueeze(-1),
                 "episode_id": episode_id.clone(),  # never hand out views of internal state
+                "step_count": state.step_count.unsqueeze(-1).clone(),
+                "episode_reward": self._return.unsqueeze(-1).clone(),
                 "human_goals": state.human_goal.clone(),  # not the robot's to see: for recording only
             },
             batch_size=self.batch_size,
@@ -163,6 +208,9 @@ class CrowdNavEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B = self.num_envs
+        if self._restored is not None and self._queued is None and (
+                tensordict is None or not {"_reset", "load_episode"} & set(tensordict.keys())):
+            return self._continue_restored()
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(B).to(self.device)
@@ -187,6 +235,7 @@ class CrowdNavEnv(EnvBase):
         if mask is None:
             self.state = fresh
             self._episode_id = ids.clone()
+            self._return = torch.zeros(B, dtype=self.dtype, device=self.device)
             self._last = (
                 torch.full((B,), float("inf"), dtype=self.dtype, device=self.device),
                 torch.zeros(B, dtype=torch.int64, device=self.device),
@@ -197,16 +246,28 @@ class CrowdNavEnv(EnvBase):
             for name in CrowdState.__dataclass_fields__:
                 getattr(self.state, name)[idx] = getattr(fresh, name)
             self._episode_id = torch.where(reset_mask, ids, self._episode_id)
+            self._return = torch.where(reset_mask, 0.0, self._return)
             min_sep, discomfort, event = self._last
             self._last = (
                 torch.where(reset_mask, float("inf"), min_sep),
                 torch.where(reset_mask, 0, discomfort),
                 torch.where(reset_mask, 0, event),
             )
+        return self._reset_output()
+
+    def _reset_output(self) -> TensorDictBase:
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
-        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
+        false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
         out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
         return out
+
+    def _continue_restored(self) -> TensorDictBase:
+        """The reset after :meth:`restore`: the snapshot's episodes, as they were."""
+        t, self._restored = self._restored, None
+        self.state = CrowdState(**{name: t[f"state.{name}"] for name in CrowdState.__dataclass_fields__})
+        self._episode_id, self._return = t["episode_id"], t["episode_reward"]
+        self._last = (t["min_separation"], t["discomfort_count"], t["event"])
+        return self._reset_output()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self.state is None:
@@ -223,6 +284,7 @@ class CrowdNavEnv(EnvBase):
         velocity, heading = decode_action(kinematics, action, self.state.robot_heading, self._actions,
                                           self.config.robot_v_pref)
         self.state, res = step(self.config, self.state, velocity, heading)
+        self._return = self._return + res.reward
         self._last = (res.min_separation, res.discomfort_count, res.event)
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
         out.update(

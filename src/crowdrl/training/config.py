@@ -89,7 +89,7 @@ class TrainConfig:
     val_every_frames: int = 500 * FRAMES_PER_EPISODE
     val_episodes: int = 100
     checkpoint_every_frames: int = 25_000
-    save_buffer: bool = False
+    save_buffer: bool = False  # the replay buffer in last.pt: a resume is then bit-exact (~50 MB per 100k)
     test_episodes: int = 1000
     compile_loss: bool = True  # torch.compile the Q networks inside the loss (faster updates; bench_train.py --loss)
 

@@ -14,7 +14,7 @@ import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
+from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.modules import EGreedyModule
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric
@@ -40,7 +40,8 @@ def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int
 def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = None, seed: int | None = None,
              scenario: str | None = None, num_humans: int | None = None,
              robot_kinematics: str = "unicycle") -> TransformedEnv:
-    """``CrowdNavEnv`` + robot-centric state + step counter + episode return.
+    """``CrowdNavEnv`` + the robot-centric state (the env itself counts steps and sums the return, so
+    that its snapshot holds them: a resumed run continues its in-flight episodes exactly).
 
     Training uses the ``train`` stream of the run seed; validation the ``val`` stream of the run
     seed; tests the ``test`` stream of the evaluation seed (``seed``), possibly on another
@@ -49,7 +50,7 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
     cfg = crowd_config(run, scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
     base = CrowdNavEnv(cfg.scenario, num_envs=num_envs or run.train.num_envs, num_humans=cfg.num_humans,
                        config=cfg, seed=run.seed if seed is None else seed, split=split, device=run.device)
-    return TransformedEnv(base, Compose(RobotCentric(), StepCounter(), RewardSum()))
+    return TransformedEnv(base, Compose(RobotCentric()))
 
 
 def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module) -> TensorDictModule:

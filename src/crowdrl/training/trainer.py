@@ -87,6 +87,7 @@ class Trainer:
         self.wandb = None
         self._restored: dict[str, Any] | None = None
         self._stop_requested = False
+        self._pending_episodes: list[tuple[int, float, int]] = []  # finished, not yet logged (logged by 20)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -95,8 +96,13 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "counters": self.counters.__dict__.copy(),
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
             "config": self.config_dict,
             "wandb_id": self.wandb.id if self.wandb else None,
+            # for an exact resume: the in-flight episodes, the finished ones not yet logged, the last bonus stats
+            "env": self.env.base_env.snapshot() if self.env.base_env.state is not None else None,
+            "pending_episodes": list(self._pending_episodes),
+            "intrinsic_stats": dict(self.intrinsic.last_stats) if self.intrinsic is not None else None,
         }
         if self.bonus is not None:
             payload["bonus"] = self.bonus.state_dict()
@@ -110,13 +116,27 @@ class Trainer:
         self.loss.load_state_dict(data["loss"])
         self.optimizer.load_state_dict(data["optimizer"])
         self.counters = Counters(**data["counters"])
-        torch.set_rng_state(data["torch_rng"])
+        self._set_rng(data)
+        self._pending_episodes = [tuple(e) for e in data.get("pending_episodes", [])]
+        if self.intrinsic is not None and data.get("intrinsic_stats") is not None:
+            self.intrinsic.last_stats = dict(data["intrinsic_stats"])
+        if data.get("env") is not None:
+            try:
+                self.env.base_env.restore(data["env"])
+            except ValueError as exc:
+                raise CheckpointError(f"the checkpoint's environments do not fit this run: {exc}") from None
         if self.bonus is not None:
             self.bonus.load_state_dict(data["bonus"])
             if "bonus_optimizer" in data:
                 self.bonus.optimizer.load_state_dict(data["bonus_optimizer"])
         if "buffer" in data:
             self.buffer.load_state_dict(data["buffer"])
+
+    @staticmethod
+    def _set_rng(data: dict[str, Any]) -> None:
+        torch.set_rng_state(data["torch_rng"])
+        if data.get("cuda_rng") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(data["cuda_rng"])
 
     def save(self, name: str = "last.pt") -> Path:
         path = self.ckpt_dir / name
@@ -161,16 +181,19 @@ class Trainer:
             self.wandb = WandbMirror(self.dir, self.config_dict, run.logger.project, run.logger.mode,
                                      resume_data.get("wandb_id") if resume_data else None)
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
-        self.env.base_env.set_next_episode(c.next_train_episode)  # a resumed run starts fresh episodes
+        if resume_data and resume_data.get("env") is None:  # an old checkpoint: start fresh episodes
+            self.env.base_env.set_next_episode(c.next_train_episode)
         self._set_schedules()  # a resumed run acts with the schedules of its frame count, not their start
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
             summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
             self.write_status("trained", **summary)
             return summary
-        collector = make_collector(run, self.env, self.policy)
+        collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
+        if resume_data:  # the collector's set-up may draw random numbers: the stream continues from here
+            self._set_rng(resume_data)
         bar = _progress(run.logger.progress_bar, t.total_frames, c.frames)
         timers = {"collect": 0.0, "update": 0.0, "validate": 0.0}
-        recent: list[tuple[int, float, int]] = []  # (event, return, steps) of recent episodes
+        recent = self._pending_episodes  # (event, return, steps) of finished episodes not yet logged
         try:
             tick = time.perf_counter()
             for batch in collector:
@@ -194,7 +217,7 @@ class Trainer:
                     timers["validate"] += time.perf_counter() - tick
                 if recent and (len(recent) >= 20 or c.frames >= t.total_frames):
                     self._log_train(recent, loss_value, timers)
-                    recent = []
+                    recent.clear()
                 if bar is not None:
                     bar.update(frames)
                     bar.set_postfix(eps=f"{float(self.egreedy.eps):.3f}", episodes=c.episodes,
