@@ -213,7 +213,7 @@ class _Killed(BaseException):
 EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "preset": "smoke",
          "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 320, "buffer_size": 1000, "batch_size": 16,
                    "warmup_frames": 32, "updates_per_frame": 0.25, "target_update_frames": 64, "val_every_frames": 96,
-                   "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 8, "save_buffer": True},
+                   "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 8, "save_buffer": True, "compile_loss": False},
          "env": {"num_humans": 4}}
 
 
