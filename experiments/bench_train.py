@@ -53,7 +53,8 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tu
 
     torch.manual_seed(0)
     run = validate({"logger": {"name": "csv"}, "encoder": {"name": args.encoder}, "exploration": {"name": exploration},
-                    "threads": args.threads, "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
+                    "threads": args.threads, "env": {"orca_backend": args.orca_backend},
+                    "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
                                                       "compile_loss": loss_backend == "compiled"}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
     torch.set_num_threads(args.threads)
@@ -120,6 +121,8 @@ def main(argv: list[str] | None = None) -> dict:
                    choices=["egreedy", "noisy", "dropout", "icm", "re3"])
     p.add_argument("--loss", nargs="+", default=["compiled"], choices=["compiled", "eager"],
                    help="run the loss's Q networks compiled (default) and/or eagerly")
+    p.add_argument("--orca-backend", default="eager", choices=["eager", "compiled"],
+                   help="the simulator's ORCA (env.orca_backend; compiled: compiled once per shape, cached)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
@@ -138,11 +141,12 @@ def main(argv: list[str] | None = None) -> dict:
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
     out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoder, "batch_size": 100,
+           "orca_backend": args.orca_backend,
            "results": results}
     if args.json:
         print(json.dumps(out, indent=1))
         return out
-    print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}, batch 100")
+    print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}, batch 100, ORCA {args.orca_backend}")
     for r in results:
         print(f"\n[{r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
         print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "

@@ -15,6 +15,7 @@ from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
 SPLITS = tuple(rng.STREAMS)
+SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (~0.1 ms each, vs ~8 ms for one alone)
 
 
 class CrowdNavEnv(EnvBase):
@@ -36,7 +37,9 @@ class CrowdNavEnv(EnvBase):
     each (partial) reset takes the next episode ids in sub-env order, unless episodes were
     queued with :meth:`load_episodes` (or the reset tensordict of the bare env carries
     ``"load_episode"`` ``[B, 1]``), in which case those episodes are loaded (episode ``i`` is the
-    same whatever ``num_envs`` or device).
+    same whatever ``num_envs`` or device). The stream's episodes are spawned ahead in blocks of
+    :data:`SPAWN_BLOCK` (one batched rejection sampling), so the partial resets of a collector
+    cost a copy, not a spawn each; the states are the same as spawning each episode alone.
 
     :meth:`snapshot` and :meth:`restore` save and reload the in-flight episodes for an exact
     resume: after ``restore``, the next reset hands back the episodes as they were, so a new
@@ -81,6 +84,7 @@ class CrowdNavEnv(EnvBase):
         self._next_episode = 0
         self._queued: torch.Tensor | None = None
         self._restored: dict[str, torch.Tensor] | None = None
+        self._spawned: tuple[int, CrowdState] | None = None  # (first episode id, states) spawned ahead
         self._actions = action_table(config.robot_v_pref, dtype=dtype, device=self.device)
         self.state: CrowdState | None = None
         self._make_specs()
@@ -186,6 +190,7 @@ class CrowdNavEnv(EnvBase):
         self._seed = int(seed)
         self._next_episode = 0
         self._restored = None  # a new stream starts over
+        self._spawned = None
         return seed
 
     def _observation(self, state: CrowdState, min_sep, discomfort, event, episode_id) -> TensorDict:
@@ -225,13 +230,15 @@ class CrowdNavEnv(EnvBase):
             ids = given
         elif self._queued is not None:
             ids, self._queued = self._queued, None
-        if ids is None:
+        if ids is None:  # the next episodes of the stream
             k = int(reset_mask.sum())
             ids = torch.zeros(B, dtype=torch.int64, device=self.device)
             ids[reset_mask] = torch.arange(self._next_episode, self._next_episode + k, device=self.device)
+            fresh = self._stream_states(self._next_episode, k)
             self._next_episode += k
-        keys = rng.episode_keys(self.split, self._seed, ids[reset_mask])
-        fresh = initial_states(self.config, keys, dtype=self.dtype)
+        else:
+            fresh = initial_states(self.config, rng.episode_keys(self.split, self._seed, ids[reset_mask]),
+                                   dtype=self.dtype)
         if mask is None:
             self.state = fresh
             self._episode_id = ids.clone()
@@ -254,6 +261,16 @@ class CrowdNavEnv(EnvBase):
                 torch.where(reset_mask, 0, event),
             )
         return self._reset_output()
+
+    def _stream_states(self, first: int, k: int) -> CrowdState:
+        """Initial states of episodes ``first .. first+k-1`` of the stream, from the block spawned ahead."""
+        start, block = self._spawned if self._spawned is not None else (-1, None)
+        if block is None or first < start or first + k > start + block.batch_size:
+            ids = torch.arange(first, first + max(k, SPAWN_BLOCK), device=self.device)
+            block = initial_states(self.config, rng.episode_keys(self.split, self._seed, ids), dtype=self.dtype)
+            start, self._spawned = first, (first, block)
+        part = block.index(slice(first - start, first - start + k))
+        return CrowdState(**{name: getattr(part, name).clone() for name in CrowdState.__dataclass_fields__})
 
     def _reset_output(self) -> TensorDictBase:
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
