@@ -1,0 +1,129 @@
+"""Collection speed against a baseline checkout, measured in one run: frames/s through the TorchRL
+collector with the ε-greedy SG-D3QN policy, and where a collected frame goes.
+
+    git worktree add /tmp/crowdrl-6dfef2c 6dfef2c
+    python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c        # table
+    python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c --json
+
+Each configuration (the baseline checkout's ``experiments/bench_train.py``, then this checkout's
+with the eager and the compiled ORCA) runs in its own subprocess, one thread, 64 environments;
+the configurations alternate ``--rounds`` times so that a slow spell of the machine hits them
+alike, and the table gives each one's median frames/s and its ratio to the baseline's median.
+The profile (this checkout, ``--profile-backend``) splits the collector's time into the env
+step (physics, ORCA), resets, the robot-centric transform, the policy and the rest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None) -> float:
+    """``collect_frames_per_s`` of ``checkout``'s bench_train.py (its own src first on the path)."""
+    cmd = [sys.executable, str(checkout / "experiments" / "bench_train.py"), "--num-envs", str(num_envs),
+           "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000", "--json"]
+    if backend is not None:
+        cmd += ["--orca-backend", backend]
+    env = dict(os.environ, PYTHONPATH=str(checkout / "src"))
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=checkout, timeout=3600)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-2000:]}")
+    text = out.stdout
+    return json.loads(text[text.index("{"):])["results"][0]["collect_frames_per_s"]
+
+
+def profile(num_envs: int, batches: int, backend: str) -> dict[str, float]:
+    """Seconds per collected frame (µs) spent in each part of a collection, by cProfile."""
+    import torch
+
+    from crowdrl.training import factories
+    from crowdrl.training.config import validate
+    from crowdrl.training.variants import make_network
+
+    torch.set_num_threads(1)
+    run = validate({"train": {"num_envs": num_envs, "steps_per_batch": 8}, "env": {"orca_backend": backend}})
+    env = factories.make_env(run)
+    policy, _ = factories.make_exploration(run, env, factories.make_actor(run, env, make_network(run, 81)))
+    it = iter(factories.make_collector(run, env, policy))
+    for _ in range(10):
+        next(it)
+    prof = cProfile.Profile()
+    frames, start = 0, time.perf_counter()
+    prof.enable()
+    for _ in range(batches):
+        frames += next(it).numel()
+    prof.disable()
+    total = time.perf_counter() - start
+    stats = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tottime, cumtime, callers)
+
+    def cum(file_end: str, name: str) -> float:
+        return sum(v[3] for k, v in stats.items() if k[0].endswith(file_end) and k[2] == name)
+
+    parts = {
+        "env step: ORCA": cum("sim/crowd.py", "human_velocities"),
+        "env step: rest of the physics": cum("sim/crowd.py", "step") - cum("sim/crowd.py", "human_velocities"),
+        "env resets (CrowdNavEnv._reset)": cum("envs/crowd_nav.py", "_reset"),
+        "robot-centric transform": cum("envs/robot_centric.py", "_call"),
+        "policy forward (Q network)": cum("models/qnet.py", "forward"),
+    }
+    policy_all = cum("tensordict/nn/sequence.py", "forward")  # cProfile counts the outermost call of a recursion
+    parts["policy: TensorDict modules, ε-greedy"] = max(0.0, policy_all - parts["policy forward (Q network)"])
+    parts["collector, EnvBase and TensorDict overhead"] = max(0.0, total - sum(parts.values()))
+    return {k: 1e6 * v / frames for k, v in parts.items()} | {"total": 1e6 * total / frames}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--baseline", type=Path, help="a checkout (e.g. a git worktree of 6dfef2c) to compare against")
+    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--batches", type=int, default=40, help="timed collector batches of num_envs x 8 frames")
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--backends", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    p.add_argument("--profile-backend", default="compiled", choices=["eager", "compiled", "none"])
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    if min(args.num_envs, args.batches, args.rounds) < 1:
+        p.error("--num-envs, --batches and --rounds must be >= 1")
+    if args.baseline is not None and not (args.baseline / "experiments" / "bench_train.py").is_file():
+        p.error(f"--baseline {args.baseline} has no experiments/bench_train.py")
+    configs = ([("baseline", args.baseline, None)] if args.baseline else []) + \
+              [(f"this checkout, ORCA {b}", ROOT, b) for b in args.backends]
+    rates: dict[str, list[float]] = {name: [] for name, _, _ in configs}
+    for _ in range(args.rounds):
+        for name, checkout, backend in configs:
+            rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend))
+            print(f"{name}: {rates[name][-1]:,.0f} frames/s", file=sys.stderr, flush=True)
+    base = statistics.median(rates["baseline"]) if args.baseline else None
+    rows = [{"config": name, "frames_per_s": statistics.median(v), "runs": v,
+             "ratio_to_baseline": statistics.median(v) / base if base else None} for name, v in rates.items()]
+    parts = profile(args.num_envs, args.batches, args.profile_backend) if args.profile_backend != "none" else {}
+    out = {"num_envs": args.num_envs, "threads": 1, "baseline": str(args.baseline) if args.baseline else None,
+           "rows": rows, "profile_backend": args.profile_backend, "profile_us_per_frame": parts}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return out
+    print(f"collection, {args.num_envs} envs, 1 thread, ε-greedy SG-D3QN, median of {args.rounds} alternating runs")
+    print(f"{'config':<32} {'frames/s':>10} {'ratio':>7}  runs")
+    for r in rows:
+        ratio = f"{r['ratio_to_baseline']:.2f}" if r["ratio_to_baseline"] else "-"
+        print(f"{r['config']:<32} {r['frames_per_s']:>10,.0f} {ratio:>7}  {', '.join(f'{x:,.0f}' for x in r['runs'])}")
+    if parts:
+        print(f"\nwhere a collected frame goes (this checkout, ORCA {args.profile_backend}, cProfile):")
+        for k, v in parts.items():
+            print(f"  {k:<44} {v:7.1f} µs  ({100 * v / parts['total']:4.1f}%)")
+    return out
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
