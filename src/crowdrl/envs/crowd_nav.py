@@ -145,10 +145,12 @@ class CrowdNavEnv(EnvBase):
         for key, value in mine.items():
             if snapshot.get(key) != value:
                 raise ValueError(f"the snapshot's {key} is {snapshot.get(key)!r}, this env's {value!r}")
-        tensors = snapshot["tensors"]
-        fields = {name: tensors[f"state.{name}"] for name in CrowdState.__dataclass_fields__}
-        if fields["robot_position"].dtype != self.dtype:
-            raise ValueError(f"the snapshot's dtype is {fields['robot_position'].dtype}, this env's {self.dtype}")
+        tensors = snapshot.get("tensors", {})
+        missing = {f"state.{n}" for n in CrowdState.__dataclass_fields__} - set(tensors)
+        if missing:
+            raise ValueError(f"the snapshot lacks {sorted(missing)}")
+        if tensors["state.robot_position"].dtype != self.dtype:
+            raise ValueError(f"the snapshot's dtype is {tensors['state.robot_position'].dtype}, this env's {self.dtype}")
         self._restored = {k: v.to(self.device, copy=True) for k, v in tensors.items()}
         self._next_episode = int(snapshot["next_episode"])
 
