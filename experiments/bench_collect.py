@@ -29,18 +29,24 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None) -> float:
-    """``collect_frames_per_s`` of ``checkout``'s bench_train.py (its own src first on the path)."""
-    cmd = [sys.executable, str(checkout / "experiments" / "bench_train.py"), "--num-envs", str(num_envs),
-           "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000", "--json"]
-    if backend is not None:
-        cmd += ["--orca-backend", backend]
+def bench_train_json(checkout: Path, args: list[str]) -> dict:
+    """``checkout``'s ``experiments/bench_train.py --json`` output, run in a subprocess with its own
+    ``src`` first on the path (so a baseline checkout measures its own code)."""
+    cmd = [sys.executable, str(checkout / "experiments" / "bench_train.py"), *args, "--json"]
     env = dict(os.environ, PYTHONPATH=str(checkout / "src"))
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=checkout, timeout=3600)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-2000:]}")
     text = out.stdout
-    return json.loads(text[text.index("{"):])["results"][0]["collect_frames_per_s"]
+    return json.loads(text[text.index("{"):])
+
+
+def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None) -> float:
+    """``collect_frames_per_s`` of ``checkout``'s bench_train.py."""
+    args = ["--num-envs", str(num_envs), "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000"]
+    if backend is not None:
+        args += ["--orca-backend", backend]
+    return bench_train_json(checkout, args)["results"][0]["collect_frames_per_s"]
 
 
 def profile(num_envs: int, batches: int, backend: str) -> dict[str, float]:

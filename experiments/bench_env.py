@@ -18,11 +18,13 @@ seeded robot actions:
   ``xref`` = core / ref.
 
 Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
-(printed once) is measured in a fresh subprocess at B=4096, N=10: the kernel's RSS high-water
-mark (``VmHWM``, reset through ``/proc/self/clear_refs`` just before) while building the state
-and while taking two steps, minus the RSS just before each; it includes every transient tensor
-of the step (``ru_maxrss`` cannot be reset and stays at the import peak, so it is only a
-fallback).
+(printed once) is measured in a fresh subprocess at ``--memory-batch-size`` (default B=65,536),
+N=10: the kernel's RSS high-water mark (``VmHWM``, reset through ``/proc/self/clear_refs`` just
+before) while building the state and while taking two steps of the core, then while building a
+``CrowdNavEnv`` of that size and taking two ``step_and_maybe_reset`` steps with it; reported as
+the process's peak RSS (everything: Python, torch, the state, every transient tensor of the
+step) and as the rise above the RSS just before (``ru_maxrss`` cannot be reset and stays at the
+import peak, so it is only a fallback).
 
 Usage::
 
@@ -60,7 +62,7 @@ FULL_B = (1, 64, 256, 1024, 4096)
 FULL_N = (5, 10, 20)
 QUICK_B = (1, 64, 1024)
 QUICK_N = (10,)
-MEM_B, MEM_N = 4096, 10
+MEM_B, MEM_N = 65536, 10
 
 
 def log(msg: str) -> None:
@@ -232,15 +234,31 @@ def memory_probe(cfg: CrowdConfig, B: int, seed: int, step_fn) -> dict:
     for _ in range(2):
         state = one(state)
     peak_step = _proc_status_mib("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return dict(B=B, N=cfg.num_humans, state_mb=state_bytes(state) / 2**20, method="VmHWM" if exact else "ru_maxrss",
-                rss_init_delta_mb=peak_init - rss0, rss_step_delta_mb=peak_step - rss1)
+    out = dict(B=B, N=cfg.num_humans, state_mb=state_bytes(state) / 2**20, method="VmHWM" if exact else "ru_maxrss",
+               rss_init_delta_mb=peak_init - rss0, rss_step_delta_mb=peak_step - rss1,
+               peak_rss_mb=max(peak_init, peak_step))
+    del state
+    # the same through CrowdNavEnv and TorchRL's step_and_maybe_reset (observations, rewards, resets)
+    from crowdrl.envs.crowd_nav import CrowdNavEnv  # noqa: PLC0415 - TorchRL import only when needed
+
+    exact = exact and _reset_peak_rss()
+    rss2 = _proc_status_mib("VmRSS")
+    env = CrowdNavEnv(cfg.scenario, num_envs=B, num_humans=cfg.num_humans, seed=seed, split="train", config=cfg)
+    td = env.reset()
+    for _ in range(2):
+        td["action"] = torch.randint(0, NUM_ACTIONS, (B,), generator=gen)
+        _, td = env.step_and_maybe_reset(td)
+    peak_env = _proc_status_mib("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out.update(env_peak_rss_mb=peak_env, env_rss_delta_mb=peak_env - rss2)
+    return out
 
 
 def run_memory_probe(args) -> dict | None:
     cmd = [sys.executable, os.path.abspath(__file__), "--_memprobe", "--threads", str(args.threads[0]),
-           "--backend", args.backend, "--scenario", args.scenario, "--seed", str(args.seed)]
+           "--backend", args.backend, "--scenario", args.scenario, "--seed", str(args.seed),
+           "--memory-batch-size", str(args.memory_batch_size)]
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=300)
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=1800)
         return json.loads(out.stdout.strip().splitlines()[-1])
     except (subprocess.SubprocessError, ValueError, IndexError) as exc:
         log(f"memory probe failed: {exc}")
@@ -264,10 +282,13 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-env", action="store_true", help="skip the CrowdNavEnv column")
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
+    p.add_argument("--memory-batch-size", type=int, default=MEM_B, help=f"B of the memory probe (default {MEM_B})")
     p.add_argument("--backend", default="torch", choices=("torch", "compiled"),
                    help="'compiled' steps with crowdrl.sim.fast when it can be imported")
     p.add_argument("--_memprobe", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.memory_batch_size < 1:
+        p.error(f"--memory-batch-size must be >= 1, got {args.memory_batch_size}")
     args.threads = [int(t) for t in str(args.threads).split(",")]
     args.steps = args.steps or (10 if args.quick else 30)
     args.max_seconds = args.max_seconds or (4.0 if args.quick else 15.0)
@@ -299,7 +320,9 @@ def print_table(rows: list[dict], memory: dict | None, meta: dict) -> None:
         print(f"# memory at B={memory['B']}, N={memory['N']} (fresh process, peak RSS by {memory['method']}): "
               f"state tensors {memory['state_mb']:.2f} MiB; peak RSS above the prior RSS: "
               f"{memory['rss_init_delta_mb']:.1f} MiB building the state (initial_states), "
-              f"{memory['rss_step_delta_mb']:.1f} MiB during two steps")
+              f"{memory['rss_step_delta_mb']:.1f} MiB during two steps; process peak RSS "
+              f"{memory['peak_rss_mb']:.0f} MiB (core), {memory['env_peak_rss_mb']:.0f} MiB (CrowdNavEnv: "
+              f"+{memory['env_rss_delta_mb']:.0f} MiB building it and stepping twice)")
 
 
 def main(argv=None) -> int:
@@ -312,7 +335,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads[0])
 
     if args._memprobe:
-        print(json.dumps(memory_probe(CrowdConfig(scenario=args.scenario, num_humans=MEM_N, orca_backend=orca_backend(args.backend)), MEM_B, args.seed, step_fn)))
+        cfg = CrowdConfig(scenario=args.scenario, num_humans=MEM_N, orca_backend=orca_backend(args.backend))
+        print(json.dumps(memory_probe(cfg, args.memory_batch_size, args.seed, step_fn)))
         return 0
 
     rows = []

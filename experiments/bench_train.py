@@ -8,11 +8,12 @@
 Measures, in one process: collecting frames with the acting policy through the TorchRL
 collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
 includes the sample-time intrinsic reward and ICM's own training step), the double-DQN loss
-(forward passes), backward, and the optimiser step. Projects the paper's budget (500k frames,
+and its gradients (``D3QNLoss.loss_and_grad``: three forward passes and one backward), and the
+optimiser step, the last two through the trainer's own ``update_once``. Projects the paper's budget (500k frames,
 500k updates of batch 100) from the measured rates. With several explorations, each variant's
 update cost is also given relative to the first one, all measured in the same process; the
-same for ``--loss eager compiled`` (the Q networks inside the loss run eagerly or through
-``torch.compile``, ``train.compile_loss``; compilation happens in the untimed warm-up).
+same for ``--loss eager compiled`` (the update runs eagerly or as one ``torch.compile`` graph,
+``train.compile_loss``; compilation happens in the untimed warm-up).
 """
 
 from __future__ import annotations
@@ -73,28 +74,28 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tu
     collect_s = time.perf_counter() - start
     collector.shutdown()
 
-    parts: dict[str, list[float]] = {"sample": [], "loss_forward": [], "backward": [], "optimizer": []}
+    # the trainer's own update (Trainer.update_once), timed in two parts: sampling, then the rest
+    parts: dict[str, list[float]] = {"sample": [], "loss_and_grad": [], "optimizer": []}
+    step = tr.optimizer.step
+
+    def timed_step(*a, **k):
+        t = time.perf_counter()
+        out = step(*a, **k)
+        marks.append(t)
+        return out
+
+    tr.optimizer.step = timed_step
     for i in range(args.updates + 20):
+        marks: list[float] = []
         t0 = time.perf_counter()
         sample = tr.buffer.sample()
         t1 = time.perf_counter()
-        if exploration == "noisy":
-            from crowdrl.exploration.noisy import reset_noise
-
-            reset_noise(tr.loss)
-        loss = tr.loss(sample)["loss"]
-        t2 = time.perf_counter()
-        tr.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        tr.update_once(sample)  # (noise reset), loss and gradients, optimiser step, target copy when due
         t3 = time.perf_counter()
-        tr.optimizer.step()
-        tr.counters.updates += 1
-        if tr.counters.updates % tr.updates_per_copy == 0:
-            tr.loss.update_target()
-        t4 = time.perf_counter()
         if i >= 20:
-            for key, value in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            for key, value in zip(parts, (t1 - t0, marks[0] - t1, t3 - marks[0])):
                 parts[key].append(value)
+    tr.optimizer.step = step
     tr.close()
     flop_probe = (tr.loss, tr.buffer.sample())
     ms = {k: 1e3 * statistics.mean(v) for k, v in parts.items()}

@@ -113,12 +113,14 @@ def test_pairwise_score_matches_autograd(backend, monkeypatch):
     monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels(backend))
     rows = torch.randn(2, 3, 6, dtype=torch.float64, requires_grad=True)
     cols = torch.randn(2, 5, 6, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(6, dtype=torch.float64, requires_grad=True)
     w = torch.randn(6, dtype=torch.float64, requires_grad=True)
-    out = _PairwiseScore.apply(rows, cols, w)
-    ref = torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3)) @ w
+    out = _PairwiseScore.apply(rows, cols, bias, w)
+    ref = torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias) @ w
     torch.testing.assert_close(out, ref)
     g = torch.randn_like(out)
-    for x, y in zip(torch.autograd.grad(out, (rows, cols, w), g), torch.autograd.grad(ref, (rows, cols, w), g)):
+    inputs = (rows, cols, bias, w)
+    for x, y in zip(torch.autograd.grad(out, inputs, g), torch.autograd.grad(ref, inputs, g)):
         torch.testing.assert_close(x, y)
 
 

@@ -21,9 +21,9 @@ weights of exactly 0, and no row is ever fully masked (every row keeps at least 
 Optimisations (the function is the same as :class:`SGD3QNEncoderNaive`'s, which applies the
 ``nn.Sequential`` MLPs to the concatenated pairs; parameters and ``state_dict`` are shared):
 
-* the first scoring layer is split: ``W [h_i; h_j] + b = W_1 h_i + (W_2 h_j + b)`` with
+* the first scoring layer is split: ``W [h_i; h_j] + b = W_1 h_i + W_2 h_j + b`` with
   ``W = [W_1 | W_2]``, so the two ``32 -> 64`` products are computed per node, not per pair;
-  the pairwise work is one broadcast add, a ReLU and a dot with the ``64 -> 1`` weights, done by
+  the pairwise work is a broadcast add (with ``b``), a ReLU and a dot with the ``64 -> 1`` weights, done by
   :class:`_PairwiseScore`, an autograd function whose forward and backward are each one fused
   loop compiled by inductor (:class:`PairwiseKernels`; the ``[B, R, C, 64]`` hidden tensor is
   never stored);
@@ -65,18 +65,20 @@ class GraphAttentionLayer(nn.Module):
         self.w_a = nn.Sequential(nn.Linear(2 * dim, 2 * dim), nn.ReLU(), nn.Linear(2 * dim, 1))
 
 
-def _score_forward(rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
-    """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :])``."""
-    return (torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3)) * w).sum(-1)
+def _score_forward(rows: Tensor, cols: Tensor, bias: Tensor, w: Tensor) -> Tensor:
+    """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :] + bias)``."""
+    return (torch.relu(rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias) * w).sum(-1)
 
 
-def _score_backward(rows: Tensor, cols: Tensor, w: Tensor, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Gradients of :func:`_score_forward` w.r.t. ``rows``, ``cols`` and ``w`` for the output gradient ``grad``."""
-    pre = rows.unsqueeze(-2) + cols.unsqueeze(-3)
+def _score_backward(rows: Tensor, cols: Tensor, bias: Tensor, w: Tensor, grad: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gradients of :func:`_score_forward` w.r.t. ``rows``, ``cols``, ``bias`` and ``w`` for the output gradient ``grad``."""
+    pre = rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias
     g = grad.unsqueeze(-1)
     grad_w = (g * torch.relu(pre)).reshape(-1, w.shape[-1]).sum(0)
     gm = torch.where(pre > 0, g, 0.0)  # d score / d pre-activation, without w
-    return gm.sum(-2) * w, gm.sum(-3) * w, grad_w
+    grad_rows = gm.sum(-2) * w
+    return grad_rows, gm.sum(-3) * w, grad_rows.reshape(-1, w.shape[-1]).sum(0), grad_w
 
 
 class PairwiseKernels:
@@ -116,25 +118,30 @@ def set_pairwise_backend(backend: str) -> None:
 
 
 class _PairwiseScore(torch.autograd.Function):
-    """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :])``.
+    """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :] + bias)``.
 
-    ``rows [B, R, K]``, ``cols [B, C, K]``, ``w [K]`` -> ``[B, R, C]``. Saves only its inputs (the
+    ``rows [B, R, K]``, ``cols [B, C, K]``, ``bias [K]``, ``w [K]`` -> ``[B, R, C]``. The bias is
+    added inside the fused loop (as ``addmm`` it would be copied into a ``[B, C, K]`` output first,
+    a slow broadcast copy on CPU). Saves only its inputs (the
     ``[B, R, C, K]`` hidden tensor is recomputed inside the fused backward, never stored) and
-    runs :data:`PAIRWISE`'s kernels. Not twice differentiable.
+    runs :data:`PAIRWISE`'s kernels. Not twice differentiable. Written with ``setup_context`` so
+    that ``torch.func`` transforms (``grad``, as in the compiled D3QN update) can apply it.
     """
 
     @staticmethod
-    def forward(ctx, rows: Tensor, cols: Tensor, w: Tensor) -> Tensor:
-        ctx.save_for_backward(rows, cols, w)
-        return PAIRWISE.forward(rows, cols, w)
+    def forward(rows: Tensor, cols: Tensor, bias: Tensor, w: Tensor) -> Tensor:
+        return PAIRWISE.forward(rows, cols, bias, w)
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple[Tensor, Tensor, Tensor, Tensor], output: Tensor) -> None:
+        ctx.save_for_backward(*inputs)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
-        rows, cols, w = ctx.saved_tensors
-        grad_rows, grad_cols, grad_w = PAIRWISE.backward(rows, cols, w, grad.contiguous())
-        need_rows, need_cols, need_w = ctx.needs_input_grad
-        return (grad_rows if need_rows else None, grad_cols if need_cols else None, grad_w if need_w else None)
+        # all four, always (autograd drops those not needed; under torch.compile + torch.func.grad,
+        # ctx.needs_input_grad reads False for a parameter passed straight in, e.g. the bias)
+        return PAIRWISE.backward(*ctx.saved_tensors, grad.contiguous())
 
 
 def _softmax_last(logits: Tensor) -> Tensor:
@@ -157,8 +164,8 @@ def _attend(layer: GraphAttentionLayer, queries: Tensor, nodes: Tensor, mask: Te
     lin1, lin2 = layer.w_a[0], layer.w_a[2]
     d = queries.shape[-1]
     rows = F.linear(queries, lin1.weight[:, :d])
-    cols = F.linear(nodes, lin1.weight[:, d:], lin1.bias)
-    scores = _PairwiseScore.apply(rows, cols, lin2.weight.reshape(-1)) + lin2.bias
+    cols = F.linear(nodes, lin1.weight[:, d:])
+    scores = _PairwiseScore.apply(rows, cols, lin1.bias, lin2.weight.reshape(-1)) + lin2.bias
     logits = F.leaky_relu(scores, LEAKY_SLOPE)
     if mask is not None:
         logits = logits.masked_fill(mask, float("-inf"))

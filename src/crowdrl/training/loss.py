@@ -12,23 +12,41 @@ the online module and routes every pass through tensordict modules, which costs 
 of an update on CPU at batch 100; here the target network is a plain frozen copy, refreshed by
 :meth:`D3QNLoss.update_target`.
 
-``compile=True`` runs both networks' forwards through ``torch.compile`` (inductor fuses the
-encoder's small ops per pass and their backward; ``experiments/bench_train.py --loss eager
-compiled`` measures the gain), compiled on first use and cached on disk by inductor. It falls
-back to eager with a warning if compilation fails (no C++ compiler).
+The math is written once, as functions of the parameters (:meth:`D3QNLoss.bootstrap`,
+:meth:`D3QNLoss.objective`, through ``torch.func.functional_call``). ``forward`` evaluates them
+with the networks' own parameters (the reference: ``loss.backward()`` then gives the
+gradients); :meth:`D3QNLoss.loss_and_grad` returns the loss and writes the gradients, and with
+``compile=True`` it runs the target, the three forward passes and the backward pass as **one**
+``torch.compile`` graph (``torch.func.grad_and_value`` of the same objective): inductor fuses
+across forward and backward, and the autograd engine, the per-call guards of separate compiled
+forwards and the input gradients nobody needs are gone (``experiments/bench_train.py --loss
+eager compiled`` measures it; tests keep both paths equal to float tolerance). Compiled on first
+use and cached on disk by inductor; falls back to eager with a warning if compilation fails.
 """
 
 from __future__ import annotations
 
 import copy
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
+from torch.func import functional_call, grad_and_value
 from torchrl.objectives import LossModule
 
 from crowdrl.models.lazy_compile import LazyCompiled
+
+
+class D3QNBatch(NamedTuple):
+    """The tensors of a sampled batch that the loss reads (``[batch, ...]``)."""
+
+    obs: tuple[Tensor, ...]
+    next_obs: tuple[Tensor, ...]
+    action: Tensor  # [batch, 1] int64 action indices
+    reward: Tensor  # [batch]
+    terminated: Tensor  # [batch] bool
+    steps: Tensor  # [batch] int64: m, the steps to the bootstrap state (the discount is γ^m)
 
 
 class D3QNLoss(LossModule):
@@ -37,7 +55,13 @@ class D3QNLoss(LossModule):
     ``obs_keys`` name the network's inputs in the sampled tensordict (and under ``"next"``);
     ``"action"`` is an integer index (``[batch]`` or ``[batch, 1]``) or a one-hot ``[batch,
     num_actions]``. ``double=False`` bootstraps with ``max_a Q_target(s', a)`` instead.
-    ``compile=True`` compiles the two networks' forwards (see the module docstring).
+    ``compile=True`` compiles :meth:`loss_and_grad` into one graph (see the module docstring).
+
+    Example::
+
+        loss = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=0.9)
+        out = loss.loss_and_grad(batch)      # gradients now in net's .grad
+        optimizer.step()
     """
 
     def __init__(self, net: nn.Module, obs_keys: Sequence[str], gamma: float, double: bool = True,
@@ -53,9 +77,9 @@ class D3QNLoss(LossModule):
         self.gamma = float(gamma)
         self.double = bool(double)
         self.compile = bool(compile)
-        # (online, target) forwards; compiled bound methods keep the modules the only registered children
-        self._forwards = tuple(LazyCompiled(n.forward, dynamic=False, what="the Q network", enabled=self.compile)
-                               for n in (self.net, self.target_net))
+        self._num_actions: int | None = None
+        self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the D3QN update",
+                                          enabled=self.compile)
 
     @property
     def in_keys(self) -> list:
@@ -74,11 +98,8 @@ class D3QNLoss(LossModule):
         for dst, src in zip(self.target_net.buffers(), self.net.buffers()):
             dst.copy_(src)
 
-    def _q(self, which: int, obs: list[Tensor]) -> Tensor:
-        """Q values of the online (``which=0``) or target (``1``) network, compiled if asked."""
-        return self._forwards[which](*obs)
-
-    def _obs(self, td: TensorDictBase, prefix: tuple = ()) -> list[Tensor]:
+    # ------------------------------------------------------------------ the batch
+    def _obs(self, td: TensorDictBase, prefix: tuple = ()) -> tuple[Tensor, ...]:
         out = []
         for key in self.obs_keys:
             full = (*prefix, key) if prefix else key
@@ -86,42 +107,87 @@ class D3QNLoss(LossModule):
             if value is None:
                 raise KeyError(f"D3QNLoss: key {full!r} missing from the batch (keys: {list(td.keys(True))})")
             out.append(value)
-        return out
+        return tuple(out)
+
+    def batch(self, td: TensorDictBase, num_actions: int | None = None) -> D3QNBatch:
+        """The loss's tensors from a sampled tensordict; actions are checked against ``num_actions``."""
+        obs, next_obs = self._obs(td), self._obs(td, ("next",))
+        n = td.batch_size[0] if td.batch_dims else obs[0].shape[0]
+        action = td.get("action")
+        if action.dtype == torch.bool or (num_actions is not None and num_actions > 1 and action.dim() >= 2
+                                          and action.shape[-1] == num_actions):
+            index = action.to(torch.int64).argmax(-1, keepdim=True)  # one-hot
+        else:
+            index = action.reshape(n, 1).to(torch.int64)
+        if num_actions is not None and bool(((index < 0) | (index >= num_actions)).any()):
+            raise ValueError(f"actions must lie in 0..{num_actions - 1}")
+        steps = td.get("steps_to_next_obs", None)
+        steps = torch.ones(n, dtype=torch.int64, device=index.device) if steps is None else steps.reshape(n)
+        return D3QNBatch(obs, next_obs, index, td.get(("next", "reward")).reshape(n),
+                         td.get(("next", "terminated")).reshape(n), steps)
+
+    def num_actions(self, td: TensorDictBase) -> int:
+        """Q-values per state (from one cheap forward pass: probes the network on one row)."""
+        if self._num_actions is None:
+            with torch.no_grad():
+                self._num_actions = int(self.net(*(o[:1] for o in self._obs(td))).shape[-1])
+        return self._num_actions
+
+    # ------------------------------------------------------------------ the math (functions of the parameters)
+    def online_params(self) -> dict[str, Tensor]:
+        return dict(self.net.named_parameters())
+
+    def target_params(self) -> dict[str, Tensor]:
+        return dict(self.target_net.named_parameters())
 
     @torch.no_grad()
-    def target(self, td: TensorDictBase) -> Tensor:
-        """The bootstrapped target ``y`` ``[batch]`` (no gradient)."""
-        nxt = self._obs(td, ("next",))
-        q_target = self._q(1, nxt)
+    def bootstrap(self, params: dict[str, Tensor], target_params: dict[str, Tensor], b: D3QNBatch) -> Tensor:
+        """The n-step double-DQN target ``y`` ``[batch]`` (no gradient)."""
+        q_target = functional_call(self.target_net, target_params, b.next_obs)
         if self.double:
-            best = self._q(0, nxt).argmax(-1, keepdim=True)
+            best = functional_call(self.net, params, b.next_obs).argmax(-1, keepdim=True)
             boot = q_target.gather(-1, best).squeeze(-1)
         else:
             boot = q_target.amax(-1)
-        reward = td.get(("next", "reward")).reshape(boot.shape)
-        terminated = td.get(("next", "terminated")).reshape(boot.shape)
-        steps = td.get("steps_to_next_obs", None)
-        discount = self.gamma if steps is None else self.gamma ** steps.reshape(boot.shape).to(boot.dtype)
-        return reward + discount * boot * (~terminated)
+        return b.reward + self.gamma ** b.steps.to(boot.dtype) * boot * (~b.terminated)
 
-    def chosen_q(self, td: TensorDictBase) -> Tensor:
-        """``Q(s, a)`` ``[batch]`` for the stored actions, with gradient."""
-        q = self._q(0, self._obs(td))
-        action = td.get("action")
-        if action.dtype == torch.bool or (action.dim() == q.dim() and action.shape[-1] == q.shape[-1] and q.shape[-1] > 1):
-            index = action.to(torch.int64).argmax(-1, keepdim=True)  # one-hot
-        else:
-            index = action.reshape(q.shape[:-1] + (1,)).to(torch.int64)
-        if bool(((index < 0) | (index >= q.shape[-1])).any()):
-            raise ValueError(f"actions must lie in 0..{q.shape[-1] - 1}")
-        return q.gather(-1, index).squeeze(-1)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        y = self.target(tensordict)
-        q = self.chosen_q(tensordict)
+    def objective(self, params: dict[str, Tensor], b: D3QNBatch, y: Tensor) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        """``mean (Q_params(s, a) - y)²`` and, detached, ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
+        q = functional_call(self.net, params, b.obs).gather(-1, b.action).squeeze(-1)
         diff = q - y
-        loss = diff.pow(2).mean()
-        return TensorDict({"loss": loss, "q_mean": q.detach().mean(), "td_error_abs": diff.detach().abs().mean()}, [])
+        return diff.pow(2).mean(), (q.detach().mean(), diff.detach().abs().mean())
+
+    def gradients(self, params: dict[str, Tensor], target_params: dict[str, Tensor], b: D3QNBatch
+                  ) -> tuple[dict[str, Tensor], Tensor, tuple[Tensor, Tensor]]:
+        """``(d loss / d params, loss, (q_mean, td_error_abs))``: what :meth:`loss_and_grad` compiles."""
+        y = self.bootstrap(params, target_params, b)
+        grads, (loss, aux) = grad_and_value(self.objective, has_aux=True)(params, b, y)
+        return grads, loss, aux
+
+    # ------------------------------------------------------------------ the two faces
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        b = self.batch(tensordict, self.num_actions(tensordict))
+        params = self.online_params()
+        y = self.bootstrap(params, self.target_params(), b)
+        loss, (q_mean, td_abs) = self.objective(params, b, y)
+        return TensorDict({"loss": loss, "q_mean": q_mean, "td_error_abs": td_abs}, [])
+
+    def loss_and_grad(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The loss on ``tensordict`` (detached) with its gradients written into the online
+        network's ``.grad`` (replacing what was there): one compiled graph with ``compile=True``,
+        ``forward`` + ``backward`` otherwise. Then step the optimiser."""
+        if not self.compile or not self._gradients_fn.enabled:
+            for p in self.net.parameters():
+                p.grad = None
+            out = self(tensordict)
+            out["loss"].backward()
+            return out.apply(torch.Tensor.detach)
+        b = self.batch(tensordict, self.num_actions(tensordict))
+        params = {k: v.detach() for k, v in self.online_params().items()}
+        grads, loss, (q_mean, td_abs) = self._gradients_fn(params, self.target_params(), b)
+        for name, p in self.net.named_parameters():
+            p.grad = grads[name]
+        return TensorDict({"loss": loss, "q_mean": q_mean, "td_error_abs": td_abs}, [])
 
 
-__all__ = ["D3QNLoss"]
+__all__ = ["D3QNBatch", "D3QNLoss"]

@@ -276,9 +276,7 @@ class Trainer:
         """One gradient step on a sampled batch (and the target copy when it is due); returns the loss."""
         if self.run.exploration.name == "noisy":
             reset_noise(self.loss)  # independent noise for the online and the target network
-        loss = self.loss(sample)["loss"]
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        loss = self.loss.loss_and_grad(sample)["loss"]  # gradients into the Q network's .grad
         self.optimizer.step()
         self.counters.updates += 1
         if self.counters.updates % self.updates_per_copy == 0:

@@ -1,0 +1,73 @@
+"""D3QN update speed against a baseline checkout, measured in one run.
+
+    git worktree add /tmp/crowdrl-6dfef2c 6dfef2c
+    python experiments/bench_update.py --baseline /tmp/crowdrl-6dfef2c          # table
+    python experiments/bench_update.py --baseline /tmp/crowdrl-6dfef2c --json
+
+One update of the SG-D3QN network at batch 100 (sample, three forward passes, one backward,
+Adam), ε-greedy, one thread: the baseline checkout's ``experiments/bench_train.py`` (its own
+``src`` first on the path) and this checkout's, each in its own subprocess, alternating
+``--rounds`` times so that a slow spell of the machine hits both alike. The table gives each
+one's median update time, its breakdown (from the median run) and the baseline's median divided
+by it (the speed-up), with the projection of the paper's budget (500k frames + 500k updates at
+that collection rate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_collect import ROOT, bench_train_json  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--baseline", type=Path, help="a checkout (e.g. a git worktree of 6dfef2c) to compare against")
+    p.add_argument("--updates", type=int, default=500, help="timed updates per run (default 500)")
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--loss", nargs="+", default=["compiled", "eager"], choices=["compiled", "eager"],
+                   help="this checkout's update: one compiled graph and/or eager")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    if min(args.updates, args.rounds) < 1:
+        p.error("--updates and --rounds must be >= 1")
+    if args.baseline is not None and not (args.baseline / "experiments" / "bench_train.py").is_file():
+        p.error(f"--baseline {args.baseline} has no experiments/bench_train.py")
+    common = ["--num-envs", "16", "--batches", "2", "--updates", str(args.updates), "--warmup-frames", "2000"]
+    configs = ([("baseline (compiled loss)", args.baseline, "compiled")] if args.baseline else []) + \
+              [(f"this checkout, {b}", ROOT, b) for b in args.loss]
+    runs: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
+    for _ in range(args.rounds):
+        for name, checkout, loss in configs:
+            result = bench_train_json(checkout, [*common, "--loss", loss])["results"][0]
+            runs[name].append(result)
+            print(f"{name}: {result['update_ms']:.2f} ms", file=sys.stderr, flush=True)
+    base = statistics.median(r["update_ms"] for r in runs[configs[0][0]]) if args.baseline else None
+    rows = []
+    for name, results in runs.items():
+        times = [r["update_ms"] for r in results]
+        median_run = sorted(results, key=lambda r: r["update_ms"])[len(results) // 2]
+        rows.append({"config": name, "update_ms": statistics.median(times), "runs_ms": times,
+                     "breakdown_ms": median_run["update_breakdown_ms"],
+                     "speedup_vs_baseline": base / statistics.median(times) if base else None,
+                     "paper_budget_hours": median_run["paper_budget_hours"]})
+    out = {"threads": 1, "batch_size": 100, "baseline": str(args.baseline) if args.baseline else None, "rows": rows}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return out
+    print(f"D3QN update of SG-D3QN at batch 100, 1 thread, median of {args.rounds} alternating runs")
+    print(f"{'config':<28} {'update ms':>9} {'speed-up':>8}  {'paper h':>7}  breakdown (ms)")
+    for r in rows:
+        ratio = f"{r['speedup_vs_baseline']:.2f}x" if r["speedup_vs_baseline"] else "-"
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in r["breakdown_ms"].items())
+        print(f"{r['config']:<28} {r['update_ms']:>9.2f} {ratio:>8}  {r['paper_budget_hours']:>7.2f}  {parts}")
+    return out
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
