@@ -130,7 +130,9 @@ class _PairwiseScore(torch.autograd.Function):
 
     @staticmethod
     def forward(rows: Tensor, cols: Tensor, bias: Tensor, w: Tensor) -> Tensor:
-        return PAIRWISE.forward(rows, cols, bias, w)
+        # detached: the kernel needs no autograd graph (with inputs that require grad, the compiled
+        # kernel would be a second, slower training variant, compiled again)
+        return PAIRWISE.forward(rows.detach(), cols.detach(), bias.detach(), w.detach())
 
     @staticmethod
     def setup_context(ctx, inputs: tuple[Tensor, Tensor, Tensor, Tensor], output: Tensor) -> None:
