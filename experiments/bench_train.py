@@ -3,7 +3,8 @@
     python experiments/bench_train.py                            # SG-D3QN, ε-greedy, batch 100, 16 envs
     python experiments/bench_train.py --threads 2 --json
     python experiments/bench_train.py --explorations egreedy noisy dropout icm re3   # overhead ratios
-    python experiments/bench_train.py --loss eager compiled      # what compiling the loss buys
+    python experiments/bench_train.py --loss eager compiled      # what compiling the update buys
+    python experiments/bench_train.py --encoders sgd3qn sarl lstm_rl mp_rgl   # per-update cost of each encoder
 
 Measures, in one process: collecting frames with the acting policy through the TorchRL
 collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
@@ -44,7 +45,7 @@ def matmul_mflop_per_update(loss, sample) -> float:
     return counter.get_total_flops() / 1e6
 
 
-def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tuple[dict, tuple]:
+def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Namespace) -> tuple[dict, tuple]:
     """Collection rate and per-update breakdown (ms) for one exploration variant, and the
     (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
@@ -53,7 +54,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tu
     from crowdrl.training.trainer import STORED_KEYS, Trainer
 
     torch.manual_seed(0)
-    run = validate({"logger": {"name": "csv"}, "encoder": {"name": args.encoder}, "exploration": {"name": exploration},
+    run = validate({"logger": {"name": "csv"}, "encoder": {"name": encoder}, "exploration": {"name": exploration},
                     "threads": args.threads, "env": {"orca_backend": args.orca_backend},
                     "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
                                                       "compile_loss": loss_backend == "compiled"}})
@@ -105,7 +106,7 @@ def measure(exploration: str, loss_backend: str, args: argparse.Namespace) -> tu
     hours = collect_h + BUDGET_UPDATES * update_ms / 1e3 / 3600
     # what one update may cost for collection + updates to fit in one hour at this collection rate
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
-    return {"exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
+    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
             "update_ms_for_1h_budget": update_ms_for_1h}, flop_probe
 
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--updates", type=int, default=300, help="timed updates (default 300)")
     p.add_argument("--batches", type=int, default=20, help="timed collector batches (default 20)")
     p.add_argument("--warmup-frames", type=int, default=5000, help="frames collected before timing (default 5000)")
-    p.add_argument("--encoder", default="sgd3qn")
+    p.add_argument("--encoders", "--encoder", nargs="+", default=["sgd3qn"],
+                   help="encoders to measure (each with every exploration and loss backend)")
     p.add_argument("--explorations", nargs="+", default=["egreedy"],
                    choices=["egreedy", "noisy", "dropout", "icm", "re3"])
     p.add_argument("--loss", nargs="+", default=["compiled"], choices=["compiled", "eager"],
@@ -131,7 +133,12 @@ def main(argv: list[str] | None = None) -> dict:
     if args.warmup_frames < 100:
         p.error("--warmup-frames must be >= 100 (one batch of 100 is sampled from the buffer)")
     torch.set_num_threads(args.threads)
-    measured = [measure(x, backend, args) for x in args.explorations for backend in args.loss]
+    from crowdrl.models import ENCODERS
+
+    unknown = sorted(set(args.encoders) - set(ENCODERS))
+    if unknown:
+        p.error(f"--encoders: unknown {unknown}; allowed: {sorted(ENCODERS)}")
+    measured = [measure(e, x, backend, args) for e in args.encoders for x in args.explorations for backend in args.loss]
     results = [r for r, _ in measured]
     for r, probe in measured:  # after every timing (see matmul_mflop_per_update)
         r["matmul_mflop_per_update"] = mflop = matmul_mflop_per_update(*probe)
@@ -141,17 +148,17 @@ def main(argv: list[str] | None = None) -> dict:
     base = results[0]["update_ms"]
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
-    out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoder, "batch_size": 100,
+    out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders, "batch_size": 100,
            "orca_backend": args.orca_backend,
            "results": results}
     if args.json:
         print(json.dumps(out, indent=1))
         return out
-    print(f"threads {args.threads}, {args.num_envs} envs, encoder {args.encoder}, batch 100, ORCA {args.orca_backend}")
+    print(f"threads {args.threads}, {args.num_envs} envs, batch 100, ORCA {args.orca_backend}")
     for r in results:
-        print(f"\n[{r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
+        print(f"\n[{r['encoder']}, {r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
         print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "
-              f"({r['update_cost_vs_first']:.2f}x {results[0]['exploration']}, {results[0]['loss']} loss)")
+              f"({r['update_cost_vs_first']:.2f}x {results[0]['encoder']} + {results[0]['exploration']}, {results[0]['loss']} loss)")
         for k, v in r["update_breakdown_ms"].items():
             print(f"    {k:<13} {v:6.2f} ms  ({100 * v / r['update_ms']:4.1f}%)")
         print(f"  matmul work: {r['matmul_mflop_per_update']:.1f} MFLOP per update (forward + backward), "

@@ -1,4 +1,5 @@
-"""The crowd encoders SARL, LSTM-RL and MP-RGL: shapes, symmetries, masks, gradients, training."""
+"""The crowd encoders SARL, LSTM-RL and MP-RGL: shapes, symmetries, masks, gradients, training;
+SG-D3QN's mask too."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from crowdrl.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = ["sarl", "lstm_rl", "mp_rgl"]
+MASKED = [*NAMES, "sgd3qn"]  # every registered encoder honours humans_mask
 # (class, embedding_dim, parameter count): SPEC §2 dimensions
 EXPECTED = {"sarl": (SARLEncoder, 59, 62801), "lstm_rl": (LSTMRLEncoder, 59, 13000), "mp_rgl": (MPRGLEncoder, 32, 9280)}
 
@@ -139,7 +141,7 @@ def test_gradients_reach_every_parameter(name):
         assert p.grad.abs().sum() > 0, f"{name}: no gradient reaches {pname}"
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", MASKED)
 def test_padded_masked_batch_equals_the_unpadded_one(name):
     """Rows with 1..5 humans, padded to 8 with garbage (NaN included) at random places, masked."""
     enc = _encoder(name)
@@ -167,7 +169,16 @@ def test_padded_masked_batch_equals_the_unpadded_one(name):
     torch.testing.assert_close(out2.reshape(len(counts), -1), expected, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", MASKED)
+def test_the_q_network_passes_the_mask_to_its_encoder(name):
+    net = make_q_network(name).double()
+    robot, humans = _states(3, n=4)
+    padded = torch.cat((humans, torch.full((3, 2, 5), float("nan"), dtype=torch.float64)), dim=1)
+    mask = torch.arange(6).expand(3, 6) < 4
+    torch.testing.assert_close(net(robot, padded, mask), net(robot, humans), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", MASKED)
 def test_a_row_without_humans_stays_finite(name):
     enc = _encoder(name)
     robot, humans = _states(2, n=3)
@@ -175,7 +186,7 @@ def test_a_row_without_humans_stays_finite(name):
     assert torch.isfinite(enc(robot, humans, mask)).all()
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", MASKED)
 def test_bad_inputs_raise(name):
     enc = _encoder(name)
     robot, humans = _states(4, n=3)

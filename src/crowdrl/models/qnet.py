@@ -14,7 +14,7 @@ from crowdrl.models.registry import make_encoder
 
 
 class CrowdQNetwork(nn.Module):
-    """``(robot_rc [*, 9], humans_rc [*, N, 5]) -> Q [*, num_actions]``: ``head(encoder(...))``."""
+    """``(robot_rc [*, 9], humans_rc [*, N, 5], humans_mask [*, N]?) -> Q [*, num_actions]``: ``head(encoder(...))``."""
 
     def __init__(self, encoder: nn.Module, head: nn.Module) -> None:
         super().__init__()
@@ -25,8 +25,11 @@ class CrowdQNetwork(nn.Module):
         self.encoder = encoder
         self.head = head
 
-    def forward(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
-        return self.head(self.encoder(robot_rc, humans_rc))
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+        """``humans_mask [*, N]`` (bool, True = present) is passed to the encoder when given."""
+        if humans_mask is None:
+            return self.head(self.encoder(robot_rc, humans_rc))
+        return self.head(self.encoder(robot_rc, humans_rc, humans_mask))
 
 
 def make_q_network(encoder_name: str = "sgd3qn", num_actions: int = 81, hidden: int = 128, **encoder_kwargs) -> CrowdQNetwork:

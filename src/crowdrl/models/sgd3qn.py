@@ -160,8 +160,8 @@ def _softmax_last(logits: Tensor) -> Tensor:
 def _attend(layer: GraphAttentionLayer, queries: Tensor, nodes: Tensor, mask: Tensor | None) -> Tensor:
     """One attention layer for the rows ``queries [B, R, D]`` over ``nodes [B, C, D]``.
 
-    ``mask [R, C]`` (bool, True = not attended) or ``None``. Same function as applying
-    ``layer.w_a`` to every concatenated pair ``[q_r, n_c]``.
+    ``mask`` (bool, True = not attended, broadcastable to ``[B, R, C]``) or ``None``. Same
+    function as applying ``layer.w_a`` to every concatenated pair ``[q_r, n_c]``.
     """
     lin1, lin2 = layer.w_a[0], layer.w_a[2]
     d = queries.shape[-1]
@@ -205,6 +205,17 @@ class SGD3QNEncoder(nn.Module):
         self.gat0 = GraphAttentionLayer(embedding_dim)
         self.gat1 = GraphAttentionLayer(embedding_dim)
 
+    def _node_mask(self, mask: Tensor, humans_mask: Tensor | None, humans_rc: Tensor) -> Tensor:
+        """``mask [N+1, N+1]`` joined with the absent humans' columns: ``[B, 1, N+1]``-broadcast, or as is."""
+        if humans_mask is None:
+            return mask
+        if humans_mask.dtype != torch.bool or humans_mask.shape != humans_rc.shape[:-1]:
+            raise ValueError(f"humans_mask must be a bool tensor shaped {tuple(humans_rc.shape[:-1])}, "
+                             f"got {humans_mask.dtype} {tuple(humans_mask.shape)}")
+        n = humans_rc.shape[-2]
+        absent = torch.cat((torch.zeros_like(humans_mask[..., :1]), ~humans_mask), dim=-1).reshape(-1, 1, n + 1)
+        return mask | absent
+
     def _check(self, robot_rc: Tensor, humans_rc: Tensor) -> tuple[torch.Size, int]:
         if robot_rc.shape[-1:] != (self.robot_dim,):
             raise ValueError(f"robot_rc must be shaped [..., {self.robot_dim}], got {tuple(robot_rc.shape)}")
@@ -217,24 +228,36 @@ class SGD3QNEncoder(nn.Module):
             raise ValueError("SGD3QNEncoder needs at least one human")
         return robot_rc.shape[:-1], humans_rc.shape[-2]
 
-    def node_features(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
-        """``X [B, N+1, D]`` with the batch flattened; the robot is node 0."""
+    def node_features(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+        """``X [B, N+1, D]`` with the batch flattened; the robot is node 0 (absent humans' inputs zeroed)."""
         n = humans_rc.shape[-2]
+        humans_rc = humans_rc.reshape(-1, n, self.human_dim)
+        if humans_mask is not None:  # whatever padding absent humans hold (even NaN) never reaches a sum
+            humans_rc = torch.where(humans_mask.reshape(-1, n, 1), humans_rc, 0.0)
         robot = self.w_r(robot_rc.reshape(-1, 1, self.robot_dim))
-        humans = self.w_h(humans_rc.reshape(-1, n, self.human_dim))
-        return torch.cat((robot, humans), dim=1)
+        return torch.cat((robot, self.w_h(humans_rc)), dim=1)
 
-    def first_layer(self, x: Tensor) -> Tensor:
-        """``H1 = gat0(X)`` for every node, ``[B, N+1, D]``."""
+    def first_layer(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``H1 = gat0(X)`` for every node, ``[B, N+1, D]`` (``mask``: :func:`human_mask`, possibly
+        joined with absent humans' columns)."""
         # built per call (two tiny ops; a constant inside a compiled graph): a cache would be a side
         # effect that makes torch.compile recompile
-        return _attend(self.gat0, x, x, human_mask(x.shape[-2], x.device))
+        return _attend(self.gat0, x, x, human_mask(x.shape[-2], x.device) if mask is None else mask)
 
-    def forward(self, robot_rc: Tensor, humans_rc: Tensor) -> Tensor:
-        lead, _ = self._check(robot_rc, humans_rc)
-        x = self.node_features(robot_rc, humans_rc)
-        h1 = self.first_layer(x)
-        h2_robot = _attend(self.gat1, h1[:, :1], h1, None)  # the robot row attends to every node
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+        """``humans_mask [*, N]`` (bool, True = present), optional: absent humans are attended by no
+        one, so the output equals that of the crowd without them (padding-invariant)."""
+        lead, n = self._check(robot_rc, humans_rc)
+        mask = self._node_mask(human_mask(n + 1, robot_rc.device), humans_mask, humans_rc)
+        x = self.node_features(robot_rc, humans_rc, humans_mask)
+        h1 = self.first_layer(x, mask)
+        robot_row = None
+        if humans_mask is not None:  # the robot row attends to every present node
+            robot_row = mask[:, :1]
+            # an absent human's row of H1 is never used; zero it so that a crowd with nobody present
+            # (every human row fully masked, hence NaN) cannot leak NaN through a zero weight
+            h1 = torch.where(robot_row.transpose(-1, -2), 0.0, h1)
+        h2_robot = _attend(self.gat1, h1[:, :1], h1, robot_row)
         out = x[:, 0] + h1[:, 0] + h2_robot[:, 0]
         return out.reshape(*lead, self.embedding_dim)
 
