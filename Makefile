@@ -22,8 +22,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --no-deps "pyrvo==0.4.3"
 	touch $(STAMP)
 
+# test files run in parallel, one per worker (a file's tests stay together, in order, sharing
+# its module fixtures); TEST_WORKERS=1 runs them one after another
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
