@@ -255,3 +255,19 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
     assert all(torch.isfinite(p).all() for p in trainer.net.parameters())
     if exploration != "egreedy":
         assert trainer.intrinsic.last_stats["reward_int_mean"] > 0  # the bonus was computed from this encoder
+
+
+def test_a_checkpoint_of_one_encoder_is_refused_by_another(tmp_path):
+    """SG-D3QN weights saved under a SARL config (a valid fingerprint for that config): loading
+    builds the SARL network from the config and refuses the weights, naming the file."""
+    from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, save_checkpoint
+    from crowdrl.training.config import to_dict
+    from crowdrl.training.pipeline import load_trained_network
+    from crowdrl.training.variants import make_network
+
+    sgd3qn = validate({"encoder": {"name": "sgd3qn"}})
+    sarl = to_dict(validate({"encoder": {"name": "sarl"}}))
+    path = tmp_path / "best.pt"
+    save_checkpoint(path, {"net": make_network(sgd3qn).state_dict(), "config": sarl}, config_fingerprint(sarl))
+    with pytest.raises(CheckpointError, match=r"best\.pt: the network shape does not match its config"):
+        load_trained_network(path)
