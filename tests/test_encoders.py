@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch import nn
 
+from crowdrl.testing import robot_centric_states
 from crowdrl.models import (
     ENCODERS,
     LSTMRLEncoder,
@@ -29,17 +30,7 @@ EXPECTED = {"sarl": (SARLEncoder, 59, 62801), "lstm_rl": (LSTMRLEncoder, 59, 130
 
 
 def _states(*batch: int, n: int = 6, dtype=torch.float64):
-    """Plausible robot-centric states (positions of a few metres, speeds ~1 m/s)."""
-    robot = torch.randn(*batch, 9, dtype=dtype)
-    robot[..., :2] = 0
-    robot[..., 4] = 0.3
-    robot[..., 5] = 4 * torch.rand(batch, dtype=dtype) + 0.5
-    robot[..., 6] = 0
-    robot[..., 7] = 1.0
-    humans = torch.randn(*batch, n, 5, dtype=dtype)
-    humans[..., :2] *= 3
-    humans[..., 4] = 0.6
-    return robot, humans
+    return robot_centric_states(*batch, n=n, dtype=dtype)
 
 
 def _encoder(name: str, dtype=torch.float64) -> nn.Module:

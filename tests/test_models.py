@@ -5,6 +5,7 @@ import torch
 from torchrl.data import Categorical
 from torchrl.envs import TransformedEnv
 
+from crowdrl.testing import robot_centric_states
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.models import (
     ENCODERS,
@@ -22,17 +23,7 @@ from crowdrl.models.sgd3qn import _PairwiseScore
 
 
 def _states(*batch: int, n: int = 10, dtype=torch.float32):
-    """Plausible robot-centric states (positions of a few metres, speeds ~1 m/s)."""
-    robot = torch.randn(*batch, 9, dtype=dtype)
-    robot[..., :2] = 0
-    robot[..., 4] = 0.3
-    robot[..., 5] = 4 * torch.rand(batch, dtype=dtype) + 0.5
-    robot[..., 6] = 0
-    robot[..., 7] = 1.0
-    humans = torch.randn(*batch, n, 5, dtype=dtype)
-    humans[..., :2] *= 3
-    humans[..., 4] = 0.6
-    return robot, humans
+    return robot_centric_states(*batch, n=n, dtype=dtype)
 
 
 def _pair(dtype=torch.float32):

@@ -89,4 +89,20 @@ def padded_batch(scenes: list[dict[str, np.ndarray]],
     return out, mask
 
 
-__all__ = ["KINDS", "ORCA_TOLERANCE", "padded_batch", "random_scene", "rvo2_velocities"]
+
+def robot_centric_states(*batch: int, n: int = 10, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Plausible robot-centric states ``(robot_rc [*batch, 9], humans_rc [*batch, n, 5])`` for
+    encoder tests: positions of a few metres, speeds ~1 m/s, drawn from torch's global RNG."""
+    robot = torch.randn(*batch, 9, dtype=dtype)
+    robot[..., :2] = 0
+    robot[..., 4] = 0.3
+    robot[..., 5] = 4 * torch.rand(batch, dtype=dtype) + 0.5
+    robot[..., 6] = 0
+    robot[..., 7] = 1.0
+    humans = torch.randn(*batch, n, 5, dtype=dtype)
+    humans[..., :2] *= 3
+    humans[..., 4] = 0.6
+    return robot, humans
+
+
+__all__ = ["KINDS", "ORCA_TOLERANCE", "padded_batch", "random_scene", "robot_centric_states", "rvo2_velocities"]

@@ -24,12 +24,8 @@ import torch
 from torch import Tensor, nn
 
 from crowdrl.models.masking import HUMAN_RC_DIM, ROBOT_RC_DIM, flatten_crowd
+from crowdrl.models.mlp import mlp
 from crowdrl.models.registry import register_encoder
-
-
-def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    """Linear-ReLU-Linear-ReLU."""
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim), nn.ReLU())
 
 
 @register_encoder("mp_rgl")
@@ -60,8 +56,8 @@ class MPRGLEncoder(nn.Module):
         self.robot_dim = int(robot_dim)
         self.human_dim = int(human_dim)
         self.embedding_dim = int(embedding_dim)
-        self.w_r = _mlp(self.robot_dim, hidden_dim, self.embedding_dim)
-        self.w_h = _mlp(self.human_dim, hidden_dim, self.embedding_dim)
+        self.w_r = mlp([self.robot_dim, hidden_dim, self.embedding_dim])
+        self.w_h = mlp([self.human_dim, hidden_dim, self.embedding_dim])
         self.w_a = nn.Linear(self.embedding_dim, self.embedding_dim, bias=False)
         self.w_b = nn.Linear(self.embedding_dim, self.embedding_dim, bias=False)
         self.layers = nn.ModuleList(nn.Linear(self.embedding_dim, self.embedding_dim, bias=False)

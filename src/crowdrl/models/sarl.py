@@ -19,17 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from crowdrl.models.masking import HUMAN_RC_DIM, ROBOT_RC_DIM, flatten_crowd, masked_mean, masked_softmax
+from crowdrl.models.mlp import mlp
 from crowdrl.models.registry import register_encoder
-
-
-def _mlp(dims: list[int], last_relu: bool) -> nn.Sequential:
-    """Linear layers through ``dims`` with ReLU between them (and after the last if ``last_relu``)."""
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
-        layers.append(nn.Linear(a, b))
-        if last_relu or i < len(dims) - 2:
-            layers.append(nn.ReLU())
-    return nn.Sequential(*layers)
 
 
 @register_encoder("sarl")
@@ -58,9 +49,9 @@ class SARLEncoder(nn.Module):
         self.robot_dim = int(robot_dim)
         self.human_dim = int(human_dim)
         joint = self.robot_dim + self.human_dim
-        self.mlp1 = _mlp([joint, *mlp1_dims], last_relu=True)
-        self.mlp2 = _mlp([mlp1_dims[-1], *mlp2_dims], last_relu=False)
-        self.attention = _mlp([2 * mlp1_dims[-1], *attention_dims, 1], last_relu=False)
+        self.mlp1 = mlp([joint, *mlp1_dims], last_relu=True)
+        self.mlp2 = mlp([mlp1_dims[-1], *mlp2_dims], last_relu=False)
+        self.attention = mlp([2 * mlp1_dims[-1], *attention_dims, 1], last_relu=False)
         self.embedding_dim = self.robot_dim + int(mlp2_dims[-1])
 
     def _encode(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor | None

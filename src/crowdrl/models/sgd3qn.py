@@ -44,16 +44,12 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from crowdrl.models.lazy_compile import LazyCompiled
+from crowdrl.models.mlp import mlp
 from crowdrl.models.registry import register_encoder
 
 ROBOT_RC_DIM = 9
 HUMAN_RC_DIM = 5
 LEAKY_SLOPE = 0.04
-
-
-def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    """Linear-ReLU-Linear-ReLU (upstream ``mlp(..., last_relu=True)``)."""
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim), nn.ReLU())
 
 
 class GraphAttentionLayer(nn.Module):
@@ -200,8 +196,8 @@ class SGD3QNEncoder(nn.Module):
         self.robot_dim = int(robot_dim)
         self.human_dim = int(human_dim)
         self.embedding_dim = int(embedding_dim)
-        self.w_r = _mlp(robot_dim, hidden_dim, embedding_dim)
-        self.w_h = _mlp(human_dim, hidden_dim, embedding_dim)
+        self.w_r = mlp([robot_dim, hidden_dim, embedding_dim])
+        self.w_h = mlp([human_dim, hidden_dim, embedding_dim])
         self.gat0 = GraphAttentionLayer(embedding_dim)
         self.gat1 = GraphAttentionLayer(embedding_dim)
 
