@@ -30,6 +30,7 @@ def make_state(robot_pos, robot_goal, human_pos, human_vel=None, human_goal=None
         human_goal_steps=torch.zeros(1, N, dtype=torch.int64),
         step_count=torch.zeros(1, dtype=torch.int64),
         episode_key=torch.zeros(1, dtype=torch.int64),
+        human_mask=torch.ones(1, N, dtype=torch.bool),
     )
 
 

@@ -22,7 +22,10 @@ class CrowdNavEnv(EnvBase):
     """Robot navigation among ORCA humans, ``num_envs`` episodes stepped at once.
 
     Observations (world frame): ``"robot"`` ``[B, 9]`` = (px, py, vx, vy, radius, gx, gy,
-    v_pref, heading) and ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius). Per-step info:
+    v_pref, heading), ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius) and ``"humans_mask"``
+    ``[B, N]`` (bool, True = present). With ``min_humans`` (or ``config.min_humans``) below
+    ``num_humans``, each episode draws its crowd size from ``min_humans..num_humans`` (a pure
+    function of its id); absent humans are zero rows, masked, and take no part in anything. Per-step info:
     ``"min_separation"``, ``"discomfort_count"``, ``"event"`` (0 running, 1 success,
     2 collision, 3 timeout), ``"episode_id"`` and ``"human_goals"`` ``[B, N, 2]`` (for
     recording trajectories; no policy of crowdrl reads it). Actions are indices into the 81-action
@@ -62,6 +65,7 @@ class CrowdNavEnv(EnvBase):
         dtype: torch.dtype = torch.float32,
         orca_backend: str = "eager",
         robot_kinematics: str = "unicycle",
+        min_humans: int | None = None,
     ) -> None:
         if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -71,11 +75,11 @@ class CrowdNavEnv(EnvBase):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if config is None:
             config = CrowdConfig(scenario=scenario, num_humans=num_humans, orca_backend=orca_backend,
-                                 robot_kinematics=robot_kinematics)
+                                 robot_kinematics=robot_kinematics, min_humans=min_humans)
         elif config.scenario != scenario or config.num_humans != num_humans:
             raise ValueError("pass scenario/num_humans either directly or through config, not both differently")
-        elif orca_backend != "eager" or robot_kinematics != "unicycle":
-            raise ValueError("with a config, set orca_backend and robot_kinematics in the config")
+        elif orca_backend != "eager" or robot_kinematics != "unicycle" or min_humans is not None:
+            raise ValueError("with a config, set orca_backend, robot_kinematics and min_humans in the config")
         super().__init__(device=torch.device(device), batch_size=torch.Size([int(num_envs)]))
         self.config = config
         self.split = split
@@ -132,7 +136,8 @@ class CrowdNavEnv(EnvBase):
         tensors.update(episode_id=self._episode_id, episode_reward=self._return, min_separation=min_sep,
                        discomfort_count=discomfort, event=event)
         return {"format": self.SNAPSHOT_FORMAT, "split": self.split, "seed": self._seed,
-                "num_envs": self.num_envs, "num_humans": self.num_humans, "next_episode": self._next_episode,
+                "num_envs": self.num_envs, "num_humans": self.num_humans, "min_humans": self.config.min_humans,
+                "next_episode": self._next_episode,
                 "tensors": {k: v.detach().to("cpu", copy=True) for k, v in tensors.items()}}
 
     def restore(self, snapshot: dict) -> None:
@@ -141,11 +146,14 @@ class CrowdNavEnv(EnvBase):
         does not match this env (split, seed, batch, crowd size, dtype)."""
         if not isinstance(snapshot, dict) or snapshot.get("format") != self.SNAPSHOT_FORMAT:
             raise ValueError(f"not a CrowdNavEnv snapshot of format {self.SNAPSHOT_FORMAT}")
-        mine = {"split": self.split, "seed": self._seed, "num_envs": self.num_envs, "num_humans": self.num_humans}
+        mine = {"split": self.split, "seed": self._seed, "num_envs": self.num_envs, "num_humans": self.num_humans,
+                "min_humans": self.config.min_humans}
         for key, value in mine.items():
             if snapshot.get(key) != value:
                 raise ValueError(f"the snapshot's {key} is {snapshot.get(key)!r}, this env's {value!r}")
-        tensors = snapshot.get("tensors", {})
+        tensors = dict(snapshot.get("tensors", {}))
+        if "state.human_mask" not in tensors and "state.human_position" in tensors:  # written before crowds varied
+            tensors["state.human_mask"] = torch.ones(tensors["state.human_position"].shape[:2], dtype=torch.bool)
         missing = {f"state.{n}" for n in CrowdState.__dataclass_fields__} - set(tensors)
         if missing:
             raise ValueError(f"the snapshot lacks {sorted(missing)}")
@@ -159,6 +167,7 @@ class CrowdNavEnv(EnvBase):
         self.observation_spec = Composite(
             robot=Unbounded((B, ROBOT_OBS_DIM), dtype=self.dtype, device=dev),
             humans=Unbounded((B, N, HUMAN_OBS_DIM), dtype=self.dtype, device=dev),
+            humans_mask=Categorical(2, (B, N), dtype=torch.bool, device=dev),
             min_separation=Unbounded((B, 1), dtype=self.dtype, device=dev),
             discomfort_count=Unbounded((B, 1), dtype=torch.int64, device=dev),
             event=Categorical(4, (B, 1), dtype=torch.int64, device=dev),
@@ -201,6 +210,7 @@ class CrowdNavEnv(EnvBase):
             {
                 "robot": robot,
                 "humans": humans,
+                "humans_mask": state.human_mask.clone(),
                 "min_separation": min_sep.unsqueeze(-1),
                 "discomfort_count": discomfort.unsqueeze(-1),
                 "event": event.unsqueeze(-1),

@@ -20,7 +20,10 @@ class CrowdConfig:
     """
 
     scenario: str = "circle"
-    num_humans: int = 10
+    num_humans: int = 10  # the crowd size, or its maximum when min_humans is smaller
+    # A crowd of variable size: each episode draws its size uniformly from min_humans..num_humans
+    # (a pure function of its episode id); tensors hold num_humans, absent ones masked. None: fixed.
+    min_humans: int | None = None
     time_step: float = 0.25
     time_limit: float = 29.25  # upstream's 30 s limit fires at t >= 29 s: 117 steps
     robot_radius: float = 0.3
@@ -64,6 +67,9 @@ class CrowdConfig:
                 f"num_humans={self.num_humans} cannot be placed with the spawn clearance in a "
                 f"{self.square_width} m square; at most {MAX_HUMANS} are supported"
             )
+        if self.min_humans is not None and (isinstance(self.min_humans, bool) or int(self.min_humans) != self.min_humans
+                                            or not 1 <= self.min_humans <= self.num_humans):
+            raise ValueError(f"min_humans must be an integer in 1..num_humans ({self.num_humans}), got {self.min_humans!r}")
         for name in ("time_step", "time_limit", "robot_radius", "human_radius", "robot_v_pref",
                      "human_v_pref", "circle_radius", "square_width", "orca_time_horizon"):
             value = getattr(self, name)
@@ -77,6 +83,11 @@ class CrowdConfig:
             raise ValueError("orca_neighbor_dist and orca_max_neighbors must be >= 0")
         if self.goal_steps_before_new_goal < 1:
             raise ValueError(f"goal_steps_before_new_goal must be >= 1, got {self.goal_steps_before_new_goal}")
+
+    @property
+    def variable_crowd(self) -> bool:
+        """Whether episodes draw their crowd size (``min_humans < num_humans``)."""
+        return self.min_humans is not None and self.min_humans < self.num_humans
 
     @property
     def max_steps(self) -> int:

@@ -44,12 +44,14 @@ def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
 
 
 def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
-    """ORCA velocities of the humans among themselves (the robot is invisible to them)."""
+    """ORCA velocities of the humans among themselves (the robot is invisible to them); absent
+    humans (``state.human_mask``) are nobody's neighbours and keep their velocity."""
     if cfg.orca_backend == "compiled":
         from crowdrl.sim.fast import compiled_orca_solve as solve
     else:
         solve = orca_solve
     B, N = state.batch_size, state.num_humans
+    mask = state.human_mask if cfg.variable_crowd else None
     radius = torch.full((B, N), cfg.human_radius + cfg.orca_radius_margin, dtype=state.human_position.dtype,
                         device=state.device)
     sol = solve(
@@ -62,6 +64,7 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tenso
         neighbor_dist=cfg.orca_neighbor_dist,
         max_neighbors=cfg.orca_max_neighbors,
         time_horizon=cfg.orca_time_horizon,
+        mask=mask,
     )
     return sol.velocities, sol.lp_infeasible
 
@@ -78,6 +81,45 @@ def closest_surface_distance(rel_position: Tensor, rel_velocity: Tensor, dt: flo
     t = t.clamp(0.0, 1.0)
     closest = rel_position + t.unsqueeze(-1) * seg
     return torch.linalg.vector_norm(closest, dim=-1) - radii
+
+
+class StepReward(NamedTuple):
+    """How one step of the robot is judged, per episode ``[...]``."""
+
+    reward: Tensor
+    collided: Tensor  # bool: the robot touched a present human during the step
+    reached: Tensor  # bool: the robot ends the step within its radius of the goal
+    min_separation: Tensor  # closest robot-human surface distance during the step (inf: no human present)
+    discomfort_count: Tensor  # int64: present humans closer than discomfort_dist during the step
+
+
+def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor, robot_goal: Tensor,
+                human_position: Tensor, human_velocity: Tensor, human_mask: Tensor | None = None) -> StepReward:
+    """The reward, collision and goal of a step (``docs/mdp.md``, "Reward"): the one definition
+    that :func:`step` and any look-ahead (e.g. a planner's predicted crowd) use.
+
+    Positions are at the start of the step; velocities hold over it (``dt = cfg.time_step``).
+    Shapes: robot ``[..., 2]``, humans ``[..., N, 2]``, ``human_mask [..., N]`` bool (``True`` =
+    present; absent humans neither collide, nor cause discomfort, nor enter the reward).
+    """
+    dt = cfg.time_step
+    rel_p = human_position - robot_position.unsqueeze(-2)
+    rel_v = human_velocity - robot_velocity.unsqueeze(-2)
+    surface = closest_surface_distance(rel_p, rel_v, dt, cfg.human_radius + cfg.robot_radius)  # [..., N]
+    if human_mask is not None:
+        surface = surface.masked_fill(~human_mask, float("inf"))
+    min_sep = surface.amin(-1) if surface.shape[-1] else surface.new_full(surface.shape[:-1], float("inf"))
+    collided = min_sep < 0
+    discomfort = (surface < cfg.discomfort_dist).sum(-1)
+    robot_next = robot_position + robot_velocity * dt
+    dist_before = torch.linalg.vector_norm(robot_position - robot_goal, dim=-1)
+    dist_after = torch.linalg.vector_norm(robot_next - robot_goal, dim=-1)
+    reached = dist_after < cfg.robot_radius
+    # progress, discomfort (every present human, every step), and the terminal bonus/penalty
+    reward = cfg.progress_factor * (dist_before - dist_after)
+    reward = reward + torch.clamp(surface - cfg.discomfort_dist, max=0.0).sum(-1)
+    reward = reward + torch.where(collided, cfg.collision_penalty, torch.where(reached, cfg.goal_reward, 0.0))
+    return StepReward(reward, collided, reached, min_sep, discomfort)
 
 
 def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_heading: Tensor | None = None
@@ -101,29 +143,20 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     # wrap to [-pi, pi): the observation stays bounded; cos/sin are unchanged
     robot_heading = torch.remainder(robot_heading + math.pi, 2 * math.pi) - math.pi
 
+    # absent humans (a crowd smaller than N) take no part: not in ORCA, collisions or the reward
+    human_mask = state.human_mask if cfg.variable_crowd else None
+
     # 1. humans: ORCA from the state at the start of the step
     human_vel, lp_infeasible = human_velocities(cfg, state)
 
-    # 2. continuous collision check over the linear relative motion within the step
-    rel_p = state.human_position - state.robot_position.unsqueeze(1)
+    # 2-4. move, and judge the step: collision over the relative motion, goal, reward
     check_vel = human_vel if cfg.collision_velocity == "new" else state.human_velocity
-    rel_v = check_vel - robot_velocity.unsqueeze(1)
-    surface = closest_surface_distance(rel_p, rel_v, dt, cfg.human_radius + cfg.robot_radius)  # [B, N]
-    min_sep = surface.min(-1).values
-    collided = min_sep < 0
-    discomfort = (surface < cfg.discomfort_dist).sum(-1)
-
-    # 3. move
+    judged = step_reward(cfg, state.robot_position, robot_velocity, state.robot_goal, state.human_position,
+                         check_vel, human_mask)
+    collided, reached, reward = judged.collided, judged.reached, judged.reward
+    min_sep, discomfort = judged.min_separation, judged.discomfort_count
     robot_pos = state.robot_position + robot_velocity * dt
     human_pos = state.human_position + human_vel * dt
-    dist_before = torch.linalg.vector_norm(state.robot_position - state.robot_goal, dim=-1)
-    dist_after = torch.linalg.vector_norm(robot_pos - state.robot_goal, dim=-1)
-    reached = dist_after < cfg.robot_radius
-
-    # 4. reward: progress, discomfort (every human, every step), and the terminal bonus/penalty
-    reward = cfg.progress_factor * (dist_before - dist_after)
-    reward = reward + torch.clamp(surface - cfg.discomfort_dist, max=0.0).sum(-1)
-    reward = reward + torch.where(collided, cfg.collision_penalty, torch.where(reached, cfg.goal_reward, 0.0))
 
     step_count = state.step_count + 1
     terminated = collided | reached
@@ -134,6 +167,8 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
 
     # 5. non-stop humans: after enough steps near the goal, a new goal and a standstill
     near_goal = torch.linalg.vector_norm(human_pos - state.human_goal, dim=-1) < cfg.human_radius
+    if human_mask is not None:
+        near_goal = near_goal & human_mask
     goal_steps = state.human_goal_steps + near_goal.long()
     needs_goal = goal_steps >= cfg.goal_steps_before_new_goal
     moved = state.replace(
@@ -156,7 +191,8 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
 
 
 def observe(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
-    """World-frame observation: robot ``[B, 9]`` and humans ``[B, N, 5]``."""
+    """World-frame observation: robot ``[B, 9]`` and humans ``[B, N, 5]`` (the rows of absent
+    humans are zeros, radius included; ``state.human_mask`` tells which are present)."""
     B, N = state.batch_size, state.num_humans
     dtype = state.robot_position.dtype
     robot = torch.cat(
@@ -178,4 +214,6 @@ def observe(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
         ),
         dim=-1,
     )
+    if cfg.variable_crowd:
+        humans = humans * state.human_mask.unsqueeze(-1)
     return robot, humans

@@ -28,7 +28,9 @@ _FIRST_DRAWS = 1 << 18  # uniforms of up to 16 first rounds drawn for every huma
 _MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 
 # Index tags keeping the purposes of random draws apart.
-_TAG_SPAWN, _TAG_NEW_GOAL = range(2)
+_TAG_SPAWN, _TAG_NEW_GOAL, _TAG_CROWD_SIZE = range(3)
+# Where absent humans (a crowd smaller than its maximum) stand: far from everything, still.
+_PARKED = 1.0e4
 # Components of a spawn round: 0-2 circle start (angle, x noise, y noise), 3-4 square start,
 # 5-6 square goal, 7 square side (read from round 0).
 _SPAWN_COMPONENTS = 8
@@ -93,6 +95,16 @@ def _chunk_rounds(searching: int, agents: int, accept: float, rounds_left: int) 
     return max(1, min(rounds, rounds_left))
 
 
+def crowd_sizes(cfg: CrowdConfig, episode_key: Tensor) -> Tensor:
+    """Humans present in each episode ``[B]`` int64: ``cfg.num_humans``, or with
+    ``cfg.min_humans`` set, a uniform draw from ``min_humans..num_humans`` keyed by the episode."""
+    if not cfg.variable_crowd:
+        return torch.full(episode_key.shape, cfg.num_humans, dtype=torch.int64, device=episode_key.device)
+    u = rng.uniform(episode_key, _TAG_CROWD_SIZE, dtype=torch.float64)
+    span = cfg.num_humans - cfg.min_humans + 1
+    return cfg.min_humans + torch.clamp((u * span).long(), max=span - 1)
+
+
 def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = torch.float32) -> CrowdState:
     """Initial states of the episodes with keys ``episode_key [B]`` (see :func:`rng.episode_keys`).
 
@@ -100,6 +112,11 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     rounds that keeps the clearance from everything placed before it, robot included. Rounds
     are drawn in chunks only for the human being placed and the episodes that have not found
     a valid candidate yet, so the result equals trying rounds one by one, episode by episode.
+
+    A crowd of variable size (``cfg.min_humans``) has its first :func:`crowd_sizes` humans present;
+    as each human is placed clear of those before it only, they stand exactly where the same
+    episode's humans stand with a fixed crowd of that size. Absent humans are not placed: they
+    stand still, far away, and ``human_mask`` marks them.
     """
     B, N = episode_key.shape[0], cfg.num_humans
     device = episode_key.device
@@ -134,16 +151,18 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
         return ok & (d[..., 1:].amin(-1) >= clearance) if d.shape[-1] > 1 else ok
 
     def place(h: int, what: str, components: range, make: Callable[[Tensor | slice, Tensor], Tensor],
-              others: list[Tensor]) -> Tensor:
-        """The first valid of ``make(episodes, uniforms)``'s candidates, ``[B, 2]``."""
+              others: list[Tensor], among: Tensor | None) -> Tensor:
+        """The first valid of ``make(episodes, uniforms)``'s candidates, ``[B, 2]``, in the
+        episodes ``among`` (all when ``None``; the others keep the parked position)."""
         nonlocal accept
-        result = torch.empty(B, 2, dtype=dtype, device=device)
-        episodes: Tensor | slice = slice(None)  # those still searching: all, then an index
-        A, first, rate = B, 0, accept
+        result = torch.full((B, 2), _PARKED, dtype=dtype, device=device)
+        # those still searching: all (or ``among``), then an index
+        episodes: Tensor | slice = slice(None) if among is None else among
+        A, first, rate = (B if among is None else among.shape[0]), 0, accept
         agents = sum(o.shape[1] for o in others)
         while True:
             if first == 0 and chunk0 is not None:
-                rounds, u = first_rounds, chunk0[:, h, :, components.start:components.stop]
+                rounds, u = first_rounds, chunk0[episodes, h, :, components.start:components.stop]
             else:
                 rounds = _chunk_rounds(A, agents, rate, SPAWN_ROUNDS - first)
                 u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, components, dtype)
@@ -170,17 +189,28 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
             episodes = keep if isinstance(episodes, slice) else episodes[keep]
             A -= hits
 
+    sizes = crowd_sizes(cfg, episode_key)
+    human_mask = torch.arange(N, device=device) < sizes.unsqueeze(-1)  # [B, N]
+    min_present = cfg.min_humans if cfg.variable_crowd else N
+    parked = torch.tensor(_PARKED, dtype=dtype, device=device)
     for h in range(N):
+        among = None if h < min_present else human_mask[:, h].nonzero().squeeze(-1)
+        if among is not None and among.shape[0] == 0:
+            positions[:, h + 1] = goals[:, h + 1] = parked  # absent everywhere (stays apart from all)
+            continue
         placed_pos, placed_goals = positions[:, : h + 1], goals[:, : h + 1]
         if h < cfg.num_circle_humans:
             start = place(h, "start", range(0, 3), lambda e, u: _circle_points(cfg, u[..., 0], u[..., 1], u[..., 2]),
-                          [placed_pos, placed_goals])
+                          [placed_pos, placed_goals], among)
             goal = -start
         else:
             start = place(h, "start", range(3, 5), lambda e, u: _square_points(cfg, side[e, h], u[..., 0], u[..., 1]),
-                          [placed_pos])
+                          [placed_pos], among)
             goal = place(h, "goal", range(5, 7), lambda e, u: _square_points(cfg, -side[e, h], u[..., 0], u[..., 1]),
-                         [placed_goals])
+                         [placed_goals], among)
+        if among is not None:  # absent humans: parked, goal where they stand
+            here = human_mask[:, h].unsqueeze(-1)
+            start, goal = torch.where(here, start, parked), torch.where(here, goal, parked)
         positions[:, h + 1], goals[:, h + 1] = start, goal
 
     return CrowdState(
@@ -194,6 +224,7 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
         human_goal_steps=torch.zeros(B, N, dtype=torch.int64, device=device),
         step_count=torch.zeros(B, dtype=torch.int64, device=device),
         episode_key=episode_key.clone(),
+        human_mask=human_mask,
     )
 
 

@@ -23,6 +23,7 @@ class CrowdState:
     human_goal_steps: Tensor  # [B, N] int64, steps spent within a radius of the current goal
     step_count: Tensor  # [B] int64
     episode_key: Tensor  # [B] int64, key of the episode's counter-based random numbers
+    human_mask: Tensor  # [B, N] bool, True where a human is present (a crowd of n < N: the first n)
 
     @property
     def batch_size(self) -> int:
