@@ -1,5 +1,5 @@
-"""The paper's table with one command: train the SG-D3QN exploration variants over seeds at a
-named budget, test every best checkpoint on circle and square (1000 cases each), run ORCA on the
+"""The paper's table with one command: train the exploration variants (of SG-D3QN, or of any
+encoders) over seeds at a named budget, test every best checkpoint on circle and square (1000 cases each), run ORCA on the
 same cases, and write ``table.md`` (+ ``.json``, ``.csv``) with 95 % confidence intervals over
 seeds (rliable), the paper's values and each variant's probability of improving on ε-greedy,
 next to the figures (learning curves over seeds, interval plot, ORCA and the agent side by side,
@@ -8,8 +8,11 @@ a GIF of a test episode).
     python experiments/reproduce.py budget=smoke 'variants=[egreedy,re3]' 'seeds=[0,1]' out=/tmp/repro
     python experiments/reproduce.py budget=demo jobs=2          # -> results/demo/
     python experiments/reproduce.py budget=paper launcher=slurm # the runs as SLURM jobs (submitit)
+    python experiments/reproduce.py budget=demo 'encoders=[sarl,lstm_rl,mp_rgl]' 'variants=[egreedy,icm]'
 
-Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs/<variant>-s<seed>``.
+Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs/<variant>-s<seed>``
+(SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method is ``<variant>`` or
+``<encoder>+<variant>``, compared with the ε-greedy run of the same encoder.
 A rerun skips finished runs and resumes killed ones from their last checkpoint; a folder made by
 another budget, test-case count or code version is refused.
 """
@@ -40,7 +43,7 @@ BUDGETS = ("smoke", "demo", "paper")
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
-KEYS = {"budget", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher", "threads",
+KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher", "threads",
         "reps", "out"}
 
 
@@ -48,9 +51,30 @@ class PlanError(ValueError):
     """A reproduce.py setting is unknown or out of range."""
 
 
+DEFAULT_ENCODER = "sgd3qn"  # the paper's architecture: its runs and rows are named by the variant alone
+
+
+@dataclass(frozen=True)
+class Method:
+    """One architecture and exploration variant: a row of the table."""
+
+    encoder: str
+    variant: str
+
+    @property
+    def name(self) -> str:
+        return self.variant if self.encoder == DEFAULT_ENCODER else f"{self.encoder}+{self.variant}"
+
+    @property
+    def baseline(self) -> "Method":
+        """The ε-greedy method of the same encoder, which the variant is compared with."""
+        return Method(self.encoder, "egreedy")
+
+
 @dataclass(frozen=True)
 class Plan:
     budget: str
+    encoders: tuple[str, ...]
     variants: tuple[str, ...]
     seeds: tuple[int, ...]
     train_scenario: str
@@ -62,8 +86,12 @@ class Plan:
     reps: int
     out: Path
 
-    def run_dir(self, variant: str, seed: int) -> Path:
-        return self.out / "runs" / f"{variant}-s{seed}"
+    @property
+    def methods(self) -> tuple[Method, ...]:
+        return tuple(Method(e, v) for e in self.encoders for v in self.variants)
+
+    def run_dir(self, method: Method, seed: int) -> Path:
+        return self.out / "runs" / f"{method.name.replace('+', '-')}-s{seed}"
 
     def manifest(self) -> dict[str, Any]:
         import crowdrl
@@ -74,6 +102,7 @@ class Plan:
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
     """Validate the settings (each error names its key)."""
+    from crowdrl.models import ENCODERS
     from crowdrl.sim.config import SCENARIOS
     from crowdrl.training.config import EXPLORATIONS
 
@@ -109,7 +138,8 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers >= 0, got {seeds}")
-    return Plan(budget=cfg["budget"], variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
+    return Plan(budget=cfg["budget"], encoders=names("encoders", tuple(sorted(ENCODERS))),
+                variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
                 train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
                 episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
                 threads=integer("threads", 1), reps=integer("reps", 100), out=Path(cfg["out"]))
@@ -135,9 +165,10 @@ def check_manifest(plan: Plan) -> None:
 # ----------------------------------------------------------------------------- jobs
 
 
-def run_overrides(plan: Plan, variant: str) -> list[str]:
+def run_overrides(plan: Plan, method: Method) -> list[str]:
     """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
-    return [f"preset={plan.budget}", f"exploration={variant}", f"env={plan.train_scenario}", "logger=csv",
+    return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
+            f"env={plan.train_scenario}", "logger=csv",
             "logger.progress_bar=false", "logger.render=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}"]
 
 
@@ -204,12 +235,12 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     return True
 
 
-def train_and_evaluate(plan: Plan, variant: str, seed: int) -> None:
+def train_and_evaluate(plan: Plan, method: Method, seed: int) -> None:
     """One run: train (resuming a killed run from its last checkpoint), then every test scenario."""
-    run_dir = plan.run_dir(variant, seed)
+    run_dir = plan.run_dir(method, seed)
     log = run_dir.parent / f"{run_dir.name}.log"
     if not is_trained(run_dir):
-        _run([sys.executable, str(ROOT / "experiments" / "train.py"), *run_overrides(plan, variant), f"seed={seed}",
+        _run([sys.executable, str(ROOT / "experiments" / "train.py"), *run_overrides(plan, method), f"seed={seed}",
               f"hydra.run.dir={run_dir}"], log)
     evaluate_run(plan, run_dir)
 
@@ -221,16 +252,17 @@ def evaluate_run(plan: Plan, run_dir: Path) -> None:
             evaluate_into(path.parent, checkpoint=run_dir, scenario=scenario, episodes=plan.episodes)
 
 
-def launch_slurm(plan: Plan, pending: list[tuple[str, int]]) -> None:
-    """The pending runs as one Hydra multirun per variant on the submitit SLURM launcher."""
-    for variant in plan.variants:
-        seeds = [s for v, s in pending if v == variant]
+def launch_slurm(plan: Plan, pending: list[tuple[Method, int]]) -> None:
+    """The pending runs as one Hydra multirun per method on the submitit SLURM launcher."""
+    for method in plan.methods:
+        seeds = [s for m, s in pending if m == method]
         if not seeds:
             continue
+        prefix = "" if method.encoder == DEFAULT_ENCODER else "${encoder.name}-"
         _run([sys.executable, str(ROOT / "experiments" / "train.py"), "-m", "hydra/launcher=slurm",
-              *run_overrides(plan, variant), f"seed={','.join(map(str, seeds))}",
-              f"hydra.sweep.dir={plan.out / 'runs'}", "hydra.sweep.subdir=${exploration.name}-s${seed}"],
-             plan.out / "runs" / f"slurm-{variant}.log")
+              *run_overrides(plan, method), f"seed={','.join(map(str, seeds))}",
+              f"hydra.sweep.dir={plan.out / 'runs'}", f"hydra.sweep.subdir={prefix}${{exploration.name}}-s${{seed}}"],
+             plan.out / "runs" / f"slurm-{method.name.replace('+', '-')}.log")
 
 
 # ----------------------------------------------------------------------------- table
@@ -239,10 +271,10 @@ def launch_slurm(plan: Plan, pending: list[tuple[str, int]]) -> None:
 def collect(plan: Plan) -> dict[str, Any]:
     """Every eval record: ``{method: {scenario: [record per seed]}}`` (ORCA: one record)."""
     records: dict[str, dict[str, list[dict]]] = {}
-    for variant in plan.variants:
+    for method in plan.methods:
         for scenario in plan.scenarios:
-            records.setdefault(variant, {})[scenario] = [
-                json.loads(eval_path(plan.run_dir(variant, s), scenario).read_text()) for s in plan.seeds]
+            records.setdefault(method.name, {})[scenario] = [
+                json.loads(eval_path(plan.run_dir(method, s), scenario).read_text()) for s in plan.seeds]
     records["orca"] = {sc: [json.loads((plan.out / "orca" / f"eval-{sc}" / "eval.json").read_text())]
                        for sc in plan.scenarios}
     return records
@@ -250,12 +282,13 @@ def collect(plan: Plan) -> dict[str, Any]:
 
 def table_rows(plan: Plan, records: dict[str, Any]) -> list[dict[str, Any]]:
     """Per method and scenario: mean and 95 % CI over seeds of each metric, the paper's value,
-    and P(improvement over ε-greedy) on success rate."""
+    and P(improvement over the same encoder's ε-greedy) on success rate."""
     import numpy as np
 
     from crowdrl.evaluation.report import paper_value
     from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
 
+    baselines = {m.name: m.baseline.name for m in plan.methods}
     rows = []
     for scenario in plan.scenarios:
         for method, by_scenario in records.items():
@@ -267,8 +300,9 @@ def table_rows(plan: Plan, records: dict[str, Any]) -> list[dict[str, Any]]:
                 mean, lo, hi = mean_interval({method: values}, reps=plan.reps)[method]
                 row.update({key: mean, f"{key}_lo": lo, f"{key}_hi": hi, f"{key}_paper": paper_value(method, scenario, key),
                             f"{key}_per_seed": values.tolist()})
-            if method not in ("egreedy", "orca") and "egreedy" in records:
-                base = np.array([r["success_rate"] for r in records["egreedy"][scenario]])
+            base_name = baselines.get(method)
+            if base_name is not None and base_name != method and base_name in records:
+                base = np.array([r["success_rate"] for r in records[base_name][scenario]])
                 ours = np.array([r["success_rate"] for r in recs])
                 p, plo, phi = probability_of_improvement(ours, base, reps=plan.reps)
                 row.update({"p_improve": p, "p_improve_lo": plo, "p_improve_hi": phi})
@@ -290,16 +324,19 @@ def _cell(row: dict[str, Any], key: str, digits: int) -> str:
 
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
     seeds = ", ".join(map(str, plan.seeds))
-    lines = [f"# crowdrl reproduction: SG-D3QN exploration variants, budget `{plan.budget}`",
+    what = ("SG-D3QN exploration variants" if plan.encoders == (DEFAULT_ENCODER,)
+            else f"exploration variants of the encoders {', '.join(plan.encoders)}")
+    lines = [f"# crowdrl reproduction: {what}, budget `{plan.budget}`",
              "",
              f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
              f"{plan.episodes} cases per scenario (test seed 0; square is zero-shot). Cells: mean over seeds "
              f"[95 % stratified-bootstrap CI, rliable, {plan.reps} resamples] (paper, one seed). "
-             "P(improve): probability that the variant's success rate beats ε-greedy's on a random pair of seeds "
+             "P(improve): probability that the variant's success rate beats ε-greedy's (same encoder) on a random "
+             "pair of seeds "
              "[95 % CI]. ORCA is deterministic: one evaluation.",
              ""]
-    run_minutes = [json.loads((plan.run_dir(v, s) / "summary.json").read_text())["wall_s"] / 60
-                   for v in plan.variants for s in plan.seeds if (plan.run_dir(v, s) / "summary.json").exists()]
+    run_minutes = [json.loads((plan.run_dir(m, s) / "summary.json").read_text())["wall_s"] / 60
+                   for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
     if run_minutes:
         lines += [f"Training + validation + circle test per run (`summary.json`): {min(run_minutes):.1f}–"
                   f"{max(run_minutes):.1f} min, {plan.jobs if plan.launcher == 'local' else 'SLURM'} at a time."]
@@ -343,22 +380,25 @@ def write_figures(plan: Plan, rows: list[dict[str, Any]]) -> None:
     from crowdrl.viz import plot_intervals, plot_seed_curves, plot_side_by_side
 
     curves = {}
-    for variant in plan.variants:
-        curves[variant] = []
+    for method in plan.methods:
+        curves[method.name] = []
         for seed in plan.seeds:
-            path = plan.run_dir(variant, seed) / "scalars.jsonl"
-            curves[variant].append([json.loads(line) for line in path.read_text().splitlines() if line.strip()])
-    plot_seed_curves(curves, plan.out / "curves.png", title=f"SG-D3QN on {plan.train_scenario}, budget {plan.budget}")
+            path = plan.run_dir(method, seed) / "scalars.jsonl"
+            curves[method.name].append([json.loads(line) for line in path.read_text().splitlines() if line.strip()])
+    arch = "SG-D3QN" if plan.encoders == (DEFAULT_ENCODER,) else ", ".join(plan.encoders)
+    plot_seed_curves(curves, plan.out / "curves.png", title=f"{arch} on {plan.train_scenario}, budget {plan.budget}")
     plot_intervals(rows, plan.out / "intervals.png", title=f"test success over seeds, budget {plan.budget}")
-    agent_dir = plan.run_dir(plan.variants[0], plan.seeds[0])
+    first = plan.methods[0]
+    agent_dir = plan.run_dir(first, plan.seeds[0])
     scenario = plan.scenarios[0]
     _, orca = evaluate_spec(policy="orca", scenario=scenario, episodes=1, record_episode=0)
     _, agent = evaluate_spec(checkpoint=agent_dir, scenario=scenario, episodes=1, record_episode=0)
-    plot_side_by_side([orca, agent], ["ORCA", f"SG-D3QN + {plan.variants[0]} (seed {plan.seeds[0]})"],
+    label = f"SG-D3QN + {first.variant}" if first.encoder == DEFAULT_ENCODER else f"{first.encoder} + {first.variant}"
+    plot_side_by_side([orca, agent], ["ORCA", f"{label} (seed {plan.seeds[0]})"],
                       plan.out / "side_by_side.png", suptitle=f"{scenario} test case 0")
     from crowdrl.viz import animate_trajectory
 
-    animate_trajectory(agent, plan.out / f"{plan.variants[0]}_s{plan.seeds[0]}_{scenario}_case0.gif")
+    animate_trajectory(agent, plan.out / f"{first.name.replace('+', '-')}_s{plan.seeds[0]}_{scenario}_case0.gif")
 
 
 # ----------------------------------------------------------------------------- main
@@ -370,16 +410,16 @@ def reproduce(plan: Plan) -> dict[str, Any]:
     start = time.perf_counter()
     torch.set_num_threads(plan.threads)
     check_manifest(plan)
-    pending = [(v, s) for v in plan.variants for s in plan.seeds
-               if not (is_trained(plan.run_dir(v, s)) and all(has_eval(eval_path(plan.run_dir(v, s), sc), plan.episodes)
+    pending = [(m, s) for m in plan.methods for s in plan.seeds
+               if not (is_trained(plan.run_dir(m, s)) and all(has_eval(eval_path(plan.run_dir(m, s), sc), plan.episodes)
                                                                for sc in plan.scenarios))]
-    done = len(plan.variants) * len(plan.seeds) - len(pending)
+    done = len(plan.methods) * len(plan.seeds) - len(pending)
     print(f"{len(pending)} run(s) to train or finish, {done} already done -> {plan.out}", flush=True)
     failures: list[str] = []
     if plan.launcher == "slurm" and pending:
         launch_slurm(plan, pending)  # blocks until the SLURM jobs end; evaluation follows here
     with ThreadPoolExecutor(max_workers=plan.jobs) as pool:
-        jobs = {pool.submit(train_and_evaluate, plan, v, s): (v, s) for v, s in pending}
+        jobs = {pool.submit(train_and_evaluate, plan, m, s): (m.name, s) for m, s in pending}
         jobs.update({pool.submit(evaluate_into, plan.out / "orca" / f"eval-{sc}", policy="orca", scenario=sc,
                                  episodes=plan.episodes): ("orca", sc)
                      for sc in plan.scenarios if not has_eval(plan.out / "orca" / f"eval-{sc}" / "eval.json",

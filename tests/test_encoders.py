@@ -210,7 +210,7 @@ TINY = {"logger": {"progress_bar": False, "render": False},
                   "warmup_frames": 32, "updates_per_frame": 0.25, "target_update_frames": 32,
                   "val_every_frames": 96, "val_episodes": 2, "checkpoint_every_frames": 96, "test_episodes": 2,
                   "compile_loss": False},
-        "env": {"num_humans": 3}}
+        "env": {"min_humans": 1, "max_humans": 4}}  # a crowd of 1..4 humans: the networks read the mask
 
 
 def _compose(name: str, exploration: str) -> dict:
@@ -240,10 +240,14 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
         assert isinstance(trainer.net.encoder, EXPECTED[name][0])
         if exploration != "egreedy":
             assert isinstance(trainer.bonus.encoder, EXPECTED[name][0])
+            assert list(trainer.bonus.in_keys) == ["robot_rc", "humans_rc", "humans_mask"]  # its encoder reads the mask
     finally:
         trainer.close()
     assert summary["updates"] > 0 and summary["frames"] == 96
     assert all(torch.isfinite(p).all() for p in trainer.net.parameters())
+    assert trainer.loss.obs_keys == ["robot_rc", "humans_rc", "humans_mask"]
+    sample = trainer.buffer.sample()
+    assert sample.get("humans_mask").shape == (16, 4) and not bool(sample.get("humans_mask").all())
     if exploration != "egreedy":
         assert trainer.intrinsic.last_stats["reward_int_mean"] > 0  # the bonus was computed from this encoder
 

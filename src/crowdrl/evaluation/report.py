@@ -34,6 +34,13 @@ PAPER = {
     "icm": {"circle": (0.6680, 0.968, 0.032, 11.366), "square": (0.6868, 0.970, 0.030, 10.729)},
     "re3": {"circle": (0.6820, 0.971, 0.029, 11.012), "square": (0.6749, 0.958, 0.042, 10.221)},
     "orca": {"circle": (0.3315, 0.769, 0.222, 13.880), "square": (0.4417, 0.840, 0.151, 12.856)},
+    # the other architectures (circle only; the paper gives no collision rate for them)
+    "lstm_rl+egreedy": {"circle": (0.5841, 0.903, math.nan, 11.683)},
+    "lstm_rl+icm": {"circle": (0.5735, 0.899, math.nan, 10.842)},
+    "sarl+egreedy": {"circle": (0.5660, 0.890, math.nan, 11.674)},
+    "sarl+icm": {"circle": (0.5737, 0.902, math.nan, 10.834)},
+    "mp_rgl+egreedy": {"circle": (0.6273, 0.941, math.nan, 11.958)},
+    "mp_rgl+icm": {"circle": (0.6437, 0.956, math.nan, 11.274)},
 }
 
 

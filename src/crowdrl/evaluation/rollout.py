@@ -129,12 +129,17 @@ def evaluate(
 
 
 def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str) -> Trajectory:
-    """The :class:`Trajectory` of one env row: its reset observation and its first ``length`` steps."""
+    """The :class:`Trajectory` of one env row: its reset observation and its first ``length`` steps
+    (the humans present in it)."""
     def series(key: str) -> Tensor:
         first = start.get(key).unsqueeze(0)
         return torch.cat((first, steps.get(("next", key))[:length]), 0).double().cpu()
 
     robot, humans, goals = series("robot"), series("humans"), series("human_goals")
+    present = start.get("humans_mask", None)
+    if present is not None:  # a crowd smaller than its maximum: only the humans that take part
+        present = present.cpu()
+        humans, goals = humans[:, present], goals[:, present]
     return Trajectory(
         robot_positions=robot[:, 0:2].numpy(),
         robot_goal=robot[0, 5:7].numpy(),

@@ -24,8 +24,9 @@ from crowdrl.sim.orca import orca_solve
 
 
 class OrcaRobotPolicy(TensorDictModuleBase):
-    """Batched ORCA robot: reads ``"robot"`` ``[B, 9]`` and ``"humans"`` ``[B, N, 5]`` (world
-    frame, as ``CrowdNavEnv`` emits them), writes the velocity ``"action"`` ``[B, 2]``.
+    """Batched ORCA robot: reads ``"robot"`` ``[B, 9]``, ``"humans"`` ``[B, N, 5]`` (world
+    frame, as ``CrowdNavEnv`` emits them) and ``"humans_mask"`` ``[B, N]`` when present, writes
+    the velocity ``"action"`` ``[B, 2]``.
 
     ``config`` supplies the ORCA parameters (time step, neighbour distance and count, time
     horizon) and the humans' maximum speed the robot assumes; positions, velocities, radii, the
@@ -43,8 +44,9 @@ class OrcaRobotPolicy(TensorDictModuleBase):
         self.in_keys = ["robot", "humans"]
         self.out_keys = ["action"]
 
-    def velocity(self, robot: Tensor, humans: Tensor) -> Tensor:
-        """The robot's ORCA velocity ``[B, 2]`` for world-frame observations."""
+    def velocity(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+        """The robot's ORCA velocity ``[B, 2]`` for world-frame observations (absent humans,
+        ``humans_mask [B, N]`` False, are not its neighbours)."""
         cfg = self.config
         positions = torch.cat((robot[:, None, 0:2], humans[..., 0:2]), dim=1)
         velocities = torch.cat((robot[:, None, 2:4], humans[..., 2:4]), dim=1)
@@ -54,13 +56,17 @@ class OrcaRobotPolicy(TensorDictModuleBase):
                             humans[..., 4] + (self.radius_margin + self.safety_space)), dim=1)
         max_speed = torch.full_like(radius, cfg.human_v_pref)
         max_speed[:, 0] = robot[:, 7]
+        mask = None
+        if humans_mask is not None and not bool(humans_mask.all()):
+            mask = torch.cat((torch.ones_like(humans_mask[:, :1]), humans_mask), dim=1)
         sol = orca_solve(
             positions, velocities, pref, radius, max_speed,
             time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
-            max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon,
+            max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon, mask=mask,
         )
         return sol.velocities[:, 0]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict.set("action", self.velocity(tensordict.get("robot"), tensordict.get("humans")))
+        tensordict.set("action", self.velocity(tensordict.get("robot"), tensordict.get("humans"),
+                                               tensordict.get("humans_mask", None)))
         return tensordict

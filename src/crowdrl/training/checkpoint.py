@@ -18,9 +18,17 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, truncated, of another format, or from another config."""
 
 
+# Keys added after runs were recorded, at the value that leaves the problem as it was: left out of
+# the fingerprint at that value, so older run folders keep theirs.
+_NEUTRAL = {"env": {"min_humans": None, "max_humans": None}}
+
+
 def config_fingerprint(config: dict) -> str:
     """Hash of the parts of a config that define the learning problem (not budgets or logging)."""
     keep = {k: config[k] for k in ("env", "encoder", "exploration", "seed") if k in config}
+    for group, neutral in _NEUTRAL.items():
+        if group in keep:
+            keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
     if "env" in keep:  # the ORCA backend changes speed, not numbers
         keep["env"] = {k: v for k, v in keep["env"].items() if k != "orca_backend"}
     train = dict(config.get("train", {}))

@@ -35,8 +35,13 @@ class ConfigError(ValueError):
 
 @dataclass
 class EnvConfig:
+    """The scenario and its crowd: ``num_humans`` humans, or, with ``min_humans``/``max_humans``
+    (each defaults to ``num_humans``), a size drawn per episode from ``min_humans..max_humans``."""
+
     scenario: str = "circle"
     num_humans: int = 10
+    min_humans: int | None = None
+    max_humans: int | None = None
     orca_backend: str = "eager"  # "compiled": the torch.compile ORCA (same numbers; compiles once per shape)
 
 
@@ -142,6 +147,12 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     e, t, x = run.env, run.train, run.exploration
     _one_of(e.scenario, "env.scenario", SCENARIOS)
     _check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
+    for key in ("min_humans", "max_humans"):
+        value = getattr(e, key)
+        _check(value is None or 1 <= value <= MAX_HUMANS, f"env.{key}", f"must lie in 1..{MAX_HUMANS} or be null, got {value}")
+    low, high = crowd_range(e)
+    _check(low <= high, "env.min_humans/env.max_humans",
+           f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
     _one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
     _one_of(x.name, "exploration.name", EXPLORATIONS)
@@ -178,6 +189,13 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
            f"({t.warmup_frames}): with this budget not a single update could run")
     check_device(run.device)
     return run
+
+
+def crowd_range(env: EnvConfig) -> tuple[int, int]:
+    """The smallest and largest crowd of ``env`` (equal for a fixed crowd)."""
+    low = env.num_humans if env.min_humans is None else env.min_humans
+    high = env.num_humans if env.max_humans is None else env.max_humans
+    return low, high
 
 
 def check_device(device: str, key: str = "device") -> None:

@@ -20,20 +20,37 @@ from torchrl.modules import EGreedyModule
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.models import make_q_actor
 from crowdrl.sim.config import CrowdConfig
-from crowdrl.training.config import RunConfig
+from crowdrl.training.config import RunConfig, crowd_range
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, uses_one_step_successor
 
 OBS_KEYS = ("robot_rc", "humans_rc")
-# what a collected batch contributes to the buffer (the n-step transform adds steps_to_next_obs)
-STORED_KEYS = [*OBS_KEYS, "action", *[("next", k) for k in (*OBS_KEYS, "reward", "done", "terminated")]]
+MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
+
+
+def obs_keys(cfg: CrowdConfig) -> tuple[str, ...]:
+    """What the networks read from an env of ``cfg``: the robot-centric states, and the humans' mask
+    when the crowd size varies (a fixed crowd has every human present)."""
+    return (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
+
+
+def stored_keys(keys: tuple[str, ...] = OBS_KEYS) -> list:
+    """What a collected batch contributes to the buffer (the n-step transform adds steps_to_next_obs)."""
+    return [*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]]
+
+
+STORED_KEYS = stored_keys(OBS_KEYS)
 
 
 def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
                  robot_kinematics: str = "unicycle") -> CrowdConfig:
-    """The simulator constants of ``run`` (``scenario``/``num_humans`` override the run's)."""
-    return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=num_humans or run.env.num_humans,
+    """The simulator constants of ``run`` (``scenario``/``num_humans`` override the run's; a given
+    ``num_humans`` is a fixed crowd even when the run's varies)."""
+    low, high = crowd_range(run.env)
+    if num_humans is not None:
+        low = high = num_humans
+    return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=high, min_humans=low if low < high else None,
                        orca_backend=run.env.orca_backend, robot_kinematics=robot_kinematics)
 
 
@@ -54,8 +71,9 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
 
 
 def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module) -> TensorDictModule:
-    """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec."""
-    return make_q_actor(run.encoder.name, env.action_spec, in_keys=OBS_KEYS, net=net)
+    """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec (reading the
+    humans' mask when ``env``'s crowd size varies: one network serves any crowd)."""
+    return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(env.base_env.config), net=net)
 
 
 def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModule) -> tuple[TensorDictSequential, EGreedyModule]:
@@ -70,10 +88,10 @@ def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModule) -> t
     return TensorDictSequential(actor, egreedy), egreedy
 
 
-def make_loss(run: RunConfig, net: torch.nn.Module) -> D3QNLoss:
-    """Double dueling DQN loss on n-step transitions, with its target network."""
+def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_KEYS) -> D3QNLoss:
+    """Double dueling DQN loss on n-step transitions of ``keys``, with its target network."""
     t = run.train
-    return D3QNLoss(net, OBS_KEYS, gamma=t.gamma, double=True, compile=t.compile_loss)
+    return D3QNLoss(net, keys, gamma=t.gamma, double=True, compile=t.compile_loss)
 
 
 def make_optimizer(run: RunConfig, net: torch.nn.Module) -> torch.optim.Optimizer:
@@ -81,18 +99,19 @@ def make_optimizer(run: RunConfig, net: torch.nn.Module) -> torch.optim.Optimize
     return torch.optim.Adam(net.parameters(), lr=run.train.lr, fused=True)
 
 
-def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None
-                ) -> tuple[TensorDictReplayBuffer, Transform | None]:
-    """The replay buffer: n-step returns at sample time, then the intrinsic bonus (ICM/RE3).
+def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None,
+                keys: tuple[str, ...] = OBS_KEYS) -> tuple[TensorDictReplayBuffer, Transform | None]:
+    """The replay buffer of observations ``keys``: n-step returns at sample time, then the
+    intrinsic bonus (ICM/RE3).
 
     Returns the buffer and the intrinsic-reward transform (``None`` without a bonus).
     """
     t = run.train
     one_step = ONE_STEP_KEY if uses_one_step_successor(run) else None
-    transform: Transform = NStepReturn(t.n_step, t.gamma, OBS_KEYS, one_step_key=one_step)
+    transform: Transform = NStepReturn(t.n_step, t.gamma, keys, one_step_key=one_step)
     intrinsic = None
     if bonus is not None:
-        intrinsic = make_intrinsic_transform(run, bonus, list(OBS_KEYS), frames or (lambda: 0))
+        intrinsic = make_intrinsic_transform(run, bonus, list(keys), frames or (lambda: 0))
         transform = Compose(transform, intrinsic)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_size, device=run.device),
                                     batch_size=t.batch_size, transform=transform)
@@ -106,5 +125,5 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["OBS_KEYS", "STORED_KEYS", "crowd_config", "make_actor", "make_buffer", "make_collector", "make_env",
+__all__ = ["MASK_KEY", "OBS_KEYS", "STORED_KEYS", "obs_keys", "stored_keys", "crowd_config", "make_actor", "make_buffer", "make_collector", "make_env",
            "make_exploration", "make_loss", "make_optimizer"]

@@ -173,7 +173,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
-    from crowdrl.sim.config import SCENARIOS, CrowdConfig
+    from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
 
     if (checkpoint is None) == (policy is None):
         raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")
@@ -184,8 +184,9 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     for name, value, low in (("eval.episodes", episodes, 1), ("eval.seed", seed, 0), ("eval.batch", batch, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
-    if num_humans is not None and not (isinstance(num_humans, int) and num_humans >= 1):
-        raise ValueError(f"eval.num_humans: must be an integer >= 1 or null, got {num_humans!r}")
+    if num_humans is not None and not (isinstance(num_humans, int) and not isinstance(num_humans, bool)
+                                       and 1 <= num_humans <= MAX_HUMANS):
+        raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
     if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
         raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
     if policy == "orca":

@@ -28,8 +28,8 @@ from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
-from crowdrl.training.factories import (OBS_KEYS, STORED_KEYS, make_actor, make_buffer, make_collector, make_env,
-                                        make_exploration, make_loss, make_optimizer)
+from crowdrl.training.factories import (make_actor, make_buffer, make_collector, make_env,
+                                        make_exploration, make_loss, make_optimizer, obs_keys, stored_keys)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
 
@@ -70,19 +70,21 @@ class Trainer:
         self.env = make_env(run, split="train")
         self.val_env = make_env(run, split="val", num_envs=t.val_episodes)  # same maker, held-out stream
         self.crowd_cfg = self.env.base_env.config
+        self.obs_keys = obs_keys(self.crowd_cfg)  # + the humans' mask when the crowd size varies
+        self.stored_keys = stored_keys(self.obs_keys)
         self.net = make_network(run, int(self.env.action_spec.n)).to(run.device)
         self.actor = make_actor(run, self.env, self.net)
         self.policy, self.egreedy = make_exploration(run, self.env, self.actor)
-        self.loss = make_loss(run, self.net)
+        self.loss = make_loss(run, self.net, self.obs_keys)
         # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
         self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
         self.optimizer = make_optimizer(run, self.net)
         self.counters = Counters()
         # ICM / RE3: built after the Q network, from their own seeds (the global RNG is untouched)
-        self.bonus = make_bonus(run, list(OBS_KEYS), int(self.env.action_spec.n))
+        self.bonus = make_bonus(run, list(self.obs_keys), int(self.env.action_spec.n))
         if self.bonus is not None:
             self.bonus.to(run.device)
-        self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames)
+        self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames, self.obs_keys)
         self.log = None
         self.wandb = None
         self._restored: dict[str, Any] | None = None
@@ -204,7 +206,7 @@ class Trainer:
                 finished = _finished_episodes(batch)
                 c.episodes += len(finished)
                 recent.extend(finished)
-                self.buffer.extend(batch.select(*STORED_KEYS))
+                self.buffer.extend(batch.select(*self.stored_keys))
                 tick = time.perf_counter()
                 loss_value = self._update(frames)
                 timers["update"] += time.perf_counter() - tick
