@@ -51,7 +51,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     from torchrl.collectors import Collector
 
     from crowdrl.training.config import validate
-    from crowdrl.training.trainer import STORED_KEYS, Trainer
+    from crowdrl.training.factories import stored_keys
+    from crowdrl.training.trainer import Trainer
 
     torch.manual_seed(0)
     run = validate({"logger": {"name": "csv"}, "encoder": {"name": encoder}, "exploration": {"name": exploration},
@@ -66,7 +67,7 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     it = iter(collector)
     while frames < args.warmup_frames:  # fill the buffer, warm up
         batch = next(it)
-        tr.buffer.extend(batch.select(*STORED_KEYS))
+        tr.buffer.extend(batch.select(*stored_keys(tr.run)))
         frames += batch.numel()
     start = time.perf_counter()
     collected = 0

@@ -8,6 +8,7 @@ a GIF of a test episode).
     python experiments/reproduce.py budget=smoke 'variants=[egreedy,re3]' 'seeds=[0,1]' out=/tmp/repro
     python experiments/reproduce.py budget=demo jobs=2          # -> results/demo/
     python experiments/reproduce.py budget=paper launcher=slurm # the runs as SLURM jobs (submitit)
+    python experiments/reproduce.py budget=demo planning=true out=results/demo-planning   # SG-D3QN's planner on
 
 Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs/<variant>-s<seed>``.
 A rerun skips finished runs and resumes killed ones from their last checkpoint; a folder made by
@@ -41,7 +42,7 @@ LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
 KEYS = {"budget", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher", "threads",
-        "reps", "out"}
+        "reps", "out", "planning"}
 
 
 class PlanError(ValueError):
@@ -61,6 +62,7 @@ class Plan:
     threads: int
     reps: int
     out: Path
+    planning: bool = False  # every run acts with SG-D3QN's online planning (planning.enabled=true)
 
     def run_dir(self, variant: str, seed: int) -> Path:
         return self.out / "runs" / f"{variant}-s{seed}"
@@ -68,8 +70,9 @@ class Plan:
     def manifest(self) -> dict[str, Any]:
         import crowdrl
 
-        return {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
-                "train_scenario": self.train_scenario, "episodes": self.episodes}
+        out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
+               "train_scenario": self.train_scenario, "episodes": self.episodes}
+        return {**out, "planning": True} if self.planning else out  # folders made before the key: unchanged
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -109,7 +112,10 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers >= 0, got {seeds}")
-    return Plan(budget=cfg["budget"], variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
+    planning = cfg.get("planning", False)
+    if not isinstance(planning, bool):
+        raise PlanError(f"planning: must be true or false, got {planning!r}")
+    return Plan(planning=planning, budget=cfg["budget"], variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
                 train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
                 episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
                 threads=integer("threads", 1), reps=integer("reps", 100), out=Path(cfg["out"]))
@@ -138,7 +144,8 @@ def check_manifest(plan: Plan) -> None:
 def run_overrides(plan: Plan, variant: str) -> list[str]:
     """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
     return [f"preset={plan.budget}", f"exploration={variant}", f"env={plan.train_scenario}", "logger=csv",
-            "logger.progress_bar=false", "logger.render=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}"]
+            "logger.progress_bar=false", "logger.render=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
+            *(["planning.enabled=true"] if plan.planning else [])]
 
 
 def is_trained(run_dir: Path) -> bool:
@@ -197,7 +204,8 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     metrics = EpisodeMetrics(**test["metrics"])
     write_records(eval_path(run_dir, scenario).parent,
                   [eval_record(metrics, scenario=scenario, seed=TEST_SEED,
-                               policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}",
+                               policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}"
+                               + ("+planning" if OmegaConf.select(run_cfg, "planning.enabled", default=False) else ""),
                                checkpoint=str(run_dir / "checkpoints" / "best.pt"),
                                checkpoint_frames=test.get("checkpoint_frames"), train_scenario=run_cfg.env.scenario,
                                train_seed=int(run_cfg.seed), reused_from="summary.json")])
@@ -290,7 +298,8 @@ def _cell(row: dict[str, Any], key: str, digits: int) -> str:
 
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
     seeds = ", ".join(map(str, plan.seeds))
-    lines = [f"# crowdrl reproduction: SG-D3QN exploration variants, budget `{plan.budget}`",
+    planning = " with online planning" if plan.planning else ""
+    lines = [f"# crowdrl reproduction: SG-D3QN exploration variants{planning}, budget `{plan.budget}`",
              "",
              f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
              f"{plan.episodes} cases per scenario (test seed 0; square is zero-shot). Cells: mean over seeds "

@@ -290,6 +290,7 @@ def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_plann
     assert record["success_rate"] == eval_ref["success_rate"]  # the same planner as the run's own test
 
 
+@pytest.mark.slow  # ~30 s (two train.py processes); make test-slow
 def test_a_smoke_training_with_planning_through_hydra(tmp_path):
     """train.py with planning on (preset=smoke, const_vel predictor): it trains and tests."""
     import os
@@ -308,3 +309,24 @@ def test_a_smoke_training_with_planning_through_hydra(tmp_path):
                           "planning.width=100", f"hydra.run.dir={tmp_path / 'bad'}"],
                          env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "planning.width" in bad.stderr
+
+
+def test_planning_is_an_axis_of_reproduce(tmp_path, monkeypatch):
+    import importlib.util
+    import sys
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "reproduce.py"
+    spec = importlib.util.spec_from_file_location("reproduce_for_planning_test", path)
+    reproduce = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, reproduce)  # its dataclasses look their module up
+    spec.loader.exec_module(reproduce)
+    cfg = {"budget": "smoke", "variants": ["egreedy"], "seeds": [0], "train_scenario": "circle",
+           "scenarios": ["circle"], "episodes": 4, "jobs": 1, "launcher": "local", "threads": 1, "reps": 100,
+           "out": str(tmp_path)}
+    plain = reproduce.make_plan(cfg)
+    planned = reproduce.make_plan({**cfg, "planning": True})
+    assert "planning.enabled=true" in reproduce.run_overrides(planned, "egreedy")
+    assert not any(o.startswith("planning") for o in reproduce.run_overrides(plain, "egreedy"))
+    assert "planning" not in plain.manifest() and planned.manifest()["planning"] is True  # folders are not mixed
+    with pytest.raises(reproduce.PlanError, match="planning"):
+        reproduce.make_plan({**cfg, "planning": "yes"})
