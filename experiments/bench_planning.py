@@ -9,8 +9,9 @@ each followed by ε-greedy) on ``B`` circle episodes of SG-D3QN with 10 humans. 
 env-step: the policy alone (``policy``, one call on a ``[B]`` tensordict, no gradient) and a
 collection step (``act+step``: the policy, then the env's step with ORCA humans and the
 robot-centric transform, as a collector pays per frame). Untrained networks: the cost does not
-depend on the weights. Medians over ``--repeats`` timed runs after a warm-up (which also
-compiles the pairwise attention kernels).
+depend on the weights. Both policies share the env and are timed in alternation, round after
+round, after a warm-up (which also compiles the pairwise attention kernels); medians over
+``--rounds``.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import time
 import torch
 
 
-def build(num_envs: int, planning: bool, depth: int, width: int):
+def build(num_envs: int, depth: int, width: int):
+    """The env and both acting policies (greedy Q and the planner, each then ε-greedy) on one Q network."""
     from tensordict.nn import TensorDictSequential
     from torchrl.envs import TransformedEnv
     from torchrl.modules import EGreedyModule
@@ -35,43 +37,44 @@ def build(num_envs: int, planning: bool, depth: int, width: int):
 
     torch.manual_seed(0)
     env = TransformedEnv(CrowdNavEnv("circle", num_envs=num_envs, seed=0), RobotCentric())
+    cfg = env.base_env.config
     net = make_q_network("sgd3qn")
-    if planning:
-        actor = OnlinePlanner(net, make_predictor("learned", env.base_env.config.time_step), env.base_env.config,
-                              gamma=0.9 ** 0.25, depth=depth, width=width)
-    else:
-        actor = make_q_actor("sgd3qn", env.action_spec, net=net)
-    policy = TensorDictSequential(actor, EGreedyModule(env.action_spec, eps_init=0.1, eps_end=0.1))
-    return env, policy
+    actors = {"greedy": make_q_actor("sgd3qn", env.action_spec, net=net),
+              "planning": OnlinePlanner(net, make_predictor("learned", cfg.time_step), cfg, gamma=0.9 ** 0.25,
+                                        depth=depth, width=width)}
+    return env, {k: TensorDictSequential(a, EGreedyModule(env.action_spec, eps_init=0.1, eps_end=0.1))
+                 for k, a in actors.items()}
 
 
-def time_it(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def measure(num_envs: int, planning: bool, depth: int, width: int, repeats: int, steps: int) -> dict:
-    env, policy = build(num_envs, planning, depth, width)
+def measure(num_envs: int, depth: int, width: int, rounds: int, steps: int) -> list[dict]:
+    """Both policies timed in alternation, round after round (the machine's load drifts; the ratio
+    is taken between neighbouring measurements), medians over ``rounds``."""
+    env, policies = build(num_envs, depth, width)
     td = env.reset()
+    times: dict[str, dict[str, list[float]]] = {k: {"policy": [], "step": []} for k in policies}
     with torch.no_grad():
-        for _ in range(3):  # warm-up (kernel compilation, allocator)
-            policy(td.clone())
-
-        def collect():
-            nonlocal td
-            for _ in range(steps):
+        for policy in policies.values():  # warm-up (kernel compilation, allocator)
+            for _ in range(3):
                 td = env.step_and_maybe_reset(policy(td))[1]
-
-        collect()
-        policy_s = time_it(lambda: policy(td.clone()), repeats)
-        step_s = time_it(collect, max(1, repeats // 4)) / steps
-    return {"num_envs": num_envs, "planning": planning, "depth": depth if planning else 0,
-            "width": width if planning else 0, "policy_us_per_env_step": policy_s / num_envs * 1e6,
-            "act_step_us_per_env_step": step_s / num_envs * 1e6}
+        for _ in range(rounds):
+            for name, policy in policies.items():
+                start = time.perf_counter()
+                policy(td.clone())
+                times[name]["policy"].append(time.perf_counter() - start)
+                start = time.perf_counter()
+                for _ in range(steps):
+                    td = env.step_and_maybe_reset(policy(td))[1]
+                times[name]["step"].append((time.perf_counter() - start) / steps)
+    rows = []
+    for name in policies:
+        planning = name == "planning"
+        rows.append({"num_envs": num_envs, "planning": planning, "depth": depth if planning else 0,
+                     "width": width if planning else 0,
+                     "policy_us_per_env_step": statistics.median(times[name]["policy"]) / num_envs * 1e6,
+                     "act_step_us_per_env_step": statistics.median(times[name]["step"]) / num_envs * 1e6})
+    for key in ("policy", "act_step"):
+        rows[1][f"{key}_ratio"] = rows[1][f"{key}_us_per_env_step"] / rows[0][f"{key}_us_per_env_step"]
+    return rows
 
 
 def main() -> None:
@@ -79,19 +82,15 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, nargs="+", default=[256, 1024])
     parser.add_argument("--depth", type=int, default=1)
     parser.add_argument("--width", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--steps", type=int, default=5, help="collection steps per timed run")
+    parser.add_argument("--rounds", type=int, default=15, help="alternating timed rounds per batch size")
+    parser.add_argument("--steps", type=int, default=3, help="collection steps per policy per round")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", action="store_true", help="print the rows as JSON instead of a table")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
     for n in args.num_envs:
-        plain = measure(n, False, args.depth, args.width, args.repeats, args.steps)
-        plan = measure(n, True, args.depth, args.width, args.repeats, args.steps)
-        for key in ("policy_us_per_env_step", "act_step_us_per_env_step"):
-            plan[key.replace("_us_per_env_step", "_ratio")] = plan[key] / plain[key]
-        rows += [plain, plan]
+        rows += measure(n, args.depth, args.width, args.rounds, args.steps)
     if args.json:
         print(json.dumps(rows, indent=1))
         return
