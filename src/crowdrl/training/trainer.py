@@ -24,11 +24,11 @@ from tensordict import TensorDictBase
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
+from crowdrl.models.predictor import predictor_loss
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
-from crowdrl.models.predictor import predictor_loss
 from crowdrl.training.factories import (OBS_KEYS, make_actor, make_buffer, make_collector, make_env, make_exploration,
                                         make_loss, make_optimizer, make_predictor_of, stored_keys)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
