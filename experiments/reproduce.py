@@ -9,6 +9,7 @@ a GIF of a test episode).
     python experiments/reproduce.py budget=demo jobs=2          # -> results/demo/
     python experiments/reproduce.py budget=paper launcher=slurm # the runs as SLURM jobs (submitit)
     python experiments/reproduce.py budget=demo 'encoders=[sarl,lstm_rl,mp_rgl]' 'variants=[egreedy,icm]'
+    python experiments/reproduce.py budget=demo planning=true out=results/demo-planning   # SG-D3QN's planner on
 
 Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs/<variant>-s<seed>``
 (SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method is ``<variant>`` or
@@ -43,8 +44,8 @@ BUDGETS = ("smoke", "demo", "paper")
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
-KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher", "threads",
-        "reps", "out"}
+KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher",
+        "threads", "reps", "out", "planning"}
 
 
 class PlanError(ValueError):
@@ -85,6 +86,7 @@ class Plan:
     threads: int
     reps: int
     out: Path
+    planning: bool = False  # every run acts with SG-D3QN's online planning (planning.enabled=true)
 
     @property
     def methods(self) -> tuple[Method, ...]:
@@ -96,8 +98,9 @@ class Plan:
     def manifest(self) -> dict[str, Any]:
         import crowdrl
 
-        return {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
-                "train_scenario": self.train_scenario, "episodes": self.episodes}
+        out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
+               "train_scenario": self.train_scenario, "episodes": self.episodes}
+        return {**out, "planning": True} if self.planning else out  # folders made before the key: unchanged
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -138,7 +141,10 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers >= 0, got {seeds}")
-    return Plan(budget=cfg["budget"], encoders=names("encoders", tuple(sorted(ENCODERS))),
+    planning = cfg.get("planning", False)
+    if not isinstance(planning, bool):
+        raise PlanError(f"planning: must be true or false, got {planning!r}")
+    return Plan(planning=planning, budget=cfg["budget"], encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
                 train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
                 episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
@@ -168,8 +174,9 @@ def check_manifest(plan: Plan) -> None:
 def run_overrides(plan: Plan, method: Method) -> list[str]:
     """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
     return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
-            f"env={plan.train_scenario}", "logger=csv",
-            "logger.progress_bar=false", "logger.render=false", f"train.test_episodes={plan.episodes}", f"threads={plan.threads}"]
+            f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
+            f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
+            *(["planning.enabled=true"] if plan.planning else [])]
 
 
 def is_trained(run_dir: Path) -> bool:
@@ -228,7 +235,8 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     metrics = EpisodeMetrics(**test["metrics"])
     write_records(eval_path(run_dir, scenario).parent,
                   [eval_record(metrics, scenario=scenario, seed=TEST_SEED,
-                               policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}",
+                               policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}"
+                               + ("+planning" if OmegaConf.select(run_cfg, "planning.enabled", default=False) else ""),
                                checkpoint=str(run_dir / "checkpoints" / "best.pt"),
                                checkpoint_frames=test.get("checkpoint_frames"), train_scenario=run_cfg.env.scenario,
                                train_seed=int(run_cfg.seed), reused_from="summary.json")])
@@ -326,7 +334,8 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
     seeds = ", ".join(map(str, plan.seeds))
     what = ("SG-D3QN exploration variants" if plan.encoders == (DEFAULT_ENCODER,)
             else f"exploration variants of the encoders {', '.join(plan.encoders)}")
-    lines = [f"# crowdrl reproduction: {what}, budget `{plan.budget}`",
+    planning = " with online planning" if plan.planning else ""
+    lines = [f"# crowdrl reproduction: {what}{planning}, budget `{plan.budget}`",
              "",
              f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
              f"{plan.episodes} cases per scenario (test seed 0; square is zero-shot). Cells: mean over seeds "

@@ -257,6 +257,21 @@ class SGD3QNEncoder(nn.Module):
         out = x[:, 0] + h1[:, 0] + h2_robot[:, 0]
         return out.reshape(*lead, self.embedding_dim)
 
+    def node_embeddings(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+        """``X + H1 + H2`` for every node, ``[*, N+1, D]`` (the robot is node 0): the per-human
+        outputs a state predictor reads. Row 0 equals :meth:`forward`'s output; the rows of
+        absent humans are zeros."""
+        lead, n = self._check(robot, humans)
+        mask = self._node_mask(human_mask(n + 1, robot.device), humans_mask, humans)
+        x = self.node_features(robot, humans, humans_mask)
+        h1 = self.first_layer(x, mask)
+        if humans_mask is not None:  # as in forward: absent rows of H1 are never attended; zero them
+            h1 = torch.where(mask[:, :1].transpose(-1, -2), 0.0, h1)
+        out = x + h1 + _attend(self.gat1, h1, h1, mask)
+        if humans_mask is not None:
+            out = torch.where(mask[:, :1].transpose(-1, -2), 0.0, out)
+        return out.reshape(*lead, n + 1, self.embedding_dim)
+
 
 class SGD3QNEncoderNaive(SGD3QNEncoder):
     """Reference implementation of the same function (same parameters), written as upstream:

@@ -36,6 +36,8 @@ def config_fingerprint(config: dict) -> str:
               "val_episodes"):
         train.pop(k, None)
     keep["train"] = train
+    if config.get("planning", {}).get("enabled"):  # planning off: the fingerprint of a run without the key
+        keep["planning"] = config["planning"]
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -20,6 +20,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.models import ENCODERS
+from crowdrl.models.predictor import PREDICTORS
+from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
@@ -100,12 +102,26 @@ class TrainConfig:
 
 
 @dataclass
+class PlanningConfig:
+    """SG-D3QN's online planning (``docs/mdp.md``, "Online planning"): act by re-scoring the top
+    ``width`` actions by Q with a ``depth``-step look-ahead through a crowd ``predictor``
+    (``learned``: trained alongside Q by MSE, Adam ``lr``; ``const_vel``: no parameters)."""
+
+    enabled: bool = False
+    depth: int = 1
+    width: int = 10
+    predictor: str = "learned"
+    lr: float = 1e-3
+
+
+@dataclass
 class RunConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    planning: PlanningConfig = field(default_factory=PlanningConfig)
     preset: str = "paper"
     seed: int = 0
     threads: int = 1
@@ -182,6 +198,11 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")
     _check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
     _check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
+    p = run.planning
+    _check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
+    _check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
+    _one_of(p.predictor, "planning.predictor", PREDICTORS)
+    _check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
     _check(run.seed >= 0, "seed", f"must be >= 0, got {run.seed}")
     _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",

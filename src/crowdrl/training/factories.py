@@ -11,14 +11,18 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.modules import EGreedyModule
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric
+from crowdrl.evaluation.rollout import crowd_env_of
+from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.models import make_q_actor
+from crowdrl.models.predictor import make_predictor
+from crowdrl.policies import OnlinePlanner
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.training.config import RunConfig, crowd_range
 from crowdrl.training.loss import D3QNLoss
@@ -27,6 +31,9 @@ from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, us
 
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
+# what the learned crowd predictor trains on: world-frame states and the real next human states (one
+# step later: the n-step transform moves only the observation keys)
+PREDICTOR_KEYS = ["robot", "humans", "humans_mask", ("next", "humans")]
 
 
 def obs_keys(cfg: CrowdConfig) -> tuple[str, ...]:
@@ -35,12 +42,17 @@ def obs_keys(cfg: CrowdConfig) -> tuple[str, ...]:
     return (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
 
 
-def stored_keys(keys: tuple[str, ...] = OBS_KEYS) -> list:
-    """What a collected batch contributes to the buffer (the n-step transform adds steps_to_next_obs)."""
-    return [*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]]
+def stored_keys(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS) -> list:
+    """The keys of a collected batch that the replay buffer keeps for ``run`` whose networks read
+    ``keys`` (the n-step transform adds steps_to_next_obs; the learned predictor adds its own)."""
+    out = [*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]]
+    if run.planning.enabled and run.planning.predictor == "learned":
+        out += [k for k in PREDICTOR_KEYS if k not in out]
+    return out
 
 
-STORED_KEYS = stored_keys(OBS_KEYS)
+# what a collected batch of a fixed crowd without planning contributes to the buffer
+STORED_KEYS = [*OBS_KEYS, "action", *[("next", k) for k in (*OBS_KEYS, "reward", "done", "terminated")]]
 
 
 def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
@@ -70,13 +82,31 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
     return TransformedEnv(base, Compose(RobotCentric()))
 
 
-def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module) -> TensorDictModule:
+def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
+               predictor: torch.nn.Module | None = None) -> TensorDictModuleBase:
     """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec (reading the
-    humans' mask when ``env``'s crowd size varies: one network serves any crowd)."""
-    return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(env.base_env.config), net=net)
+    humans' mask when ``env``'s crowd size varies: one network serves any crowd), or, with
+    ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and ``predictor``
+    (which reads the mask whenever the observation has one)."""
+    crowd = crowd_env_of(env).config
+    if not run.planning.enabled:
+        return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd), net=net)
+    if predictor is None:
+        raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
+    p = run.planning
+    return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width)
 
 
-def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModule) -> tuple[TensorDictSequential, EGreedyModule]:
+def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | None:
+    """The planner's crowd predictor (``None`` without planning), initialised from a seed derived
+    from the run seed: the global RNG, hence the Q network and everything after, is untouched."""
+    if not run.planning.enabled:
+        return None
+    with seeded_init(2_000_003 * (run.seed + 1)):
+        return make_predictor(run.planning.predictor, time_step).to(run.device)
+
+
+def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase) -> tuple[TensorDictSequential, EGreedyModule]:
     """The acting policy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
 
     Under ``ExplorationType.DETERMINISTIC`` (evaluation) the ε-greedy step passes the greedy
@@ -125,5 +155,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["MASK_KEY", "OBS_KEYS", "STORED_KEYS", "obs_keys", "stored_keys", "crowd_config", "make_actor", "make_buffer", "make_collector", "make_env",
-           "make_exploration", "make_loss", "make_optimizer"]
+__all__ = ["MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "STORED_KEYS", "crowd_config", "make_actor", "make_buffer",
+           "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer", "make_predictor_of",
+           "obs_keys", "stored_keys"]

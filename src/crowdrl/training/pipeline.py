@@ -13,7 +13,7 @@ import torch
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
 from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
-from crowdrl.training.factories import make_actor, make_env
+from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
 
@@ -137,19 +137,39 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     return run, net, data
 
 
+def load_trained_predictor(run: RunConfig, data: dict[str, Any], path: Path | str = "checkpoint"
+                           ) -> torch.nn.Module | None:
+    """The planner's crowd predictor of a trained checkpoint's payload ``data`` (``None`` without
+    planning; a ``const_vel`` predictor has no weights to load)."""
+    predictor = make_predictor_of(run, crowd_config(run).time_step)
+    if predictor is None or not any(True for _ in predictor.parameters()):
+        return predictor
+    if "predictor" not in data:
+        raise CheckpointError(f"{path}: planning.predictor=learned but the checkpoint holds no predictor weights")
+    try:
+        predictor.load_state_dict(data["predictor"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{path}: the predictor's weights do not fit ({str(exc).splitlines()[0]})") from None
+    return predictor.eval()
+
+
 def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | None = None, seed: int = TEST_SEED,
                      episodes: int = 1000, num_humans: int | None = None, record_episode: int | None = None,
-                     batch: int = EVAL_BATCH) -> tuple[EpisodeMetrics, Trajectory | None]:
-    """Test ``net`` on ``episodes`` cases of the test stream ``seed`` (the run's scenario by default)."""
+                     batch: int = EVAL_BATCH, predictor: torch.nn.Module | None = None
+                     ) -> tuple[EpisodeMetrics, Trajectory | None]:
+    """Test ``net`` on ``episodes`` cases of the test stream ``seed`` (the run's scenario by default);
+    with ``planning.enabled`` through the planner of ``net`` and ``predictor``."""
     env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario,
                    num_humans=num_humans)
-    return evaluate(env, make_actor(run, env, net), num_episodes=episodes, record_episode=record_episode)
+    return evaluate(env, make_actor(run, env, net, predictor), num_episodes=episodes, record_episode=record_episode)
 
 
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:
     """Greedy evaluation of ``checkpoints/best.pt`` on the test cases of the run's scenario."""
     _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)))
-    metrics, traj = evaluate_network(run, net, episodes=run.train.test_episodes, record_episode=record_episode)
+    predictor = load_trained_predictor(run, best, checkpoint_path(run_dir))
+    metrics, traj = evaluate_network(run, net, episodes=run.train.test_episodes, record_episode=record_episode,
+                                     predictor=predictor)
     out = {"checkpoint_frames": best["frames"], "test_seed": TEST_SEED, "metrics": metrics.as_dict()}
     if render and traj is not None:
         from crowdrl.viz import animate_trajectory, plot_trajectory
@@ -199,10 +219,14 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     if device != run.device:
         run = replace(run, device=device)
     net.to(device)
+    predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
+    if predictor is not None:
+        predictor.to(device)
     scenario = scenario or run.env.scenario
     metrics, traj = evaluate_network(run, net, scenario=scenario, seed=seed, episodes=episodes, num_humans=num_humans,
-                                     record_episode=record_episode, batch=batch)
-    record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}",
+                                     record_episode=record_episode, batch=batch, predictor=predictor)
+    record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}"
+                         + ("+planning" if run.planning.enabled else ""),
                          checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed)
     return record, traj

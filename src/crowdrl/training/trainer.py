@@ -24,12 +24,13 @@ from tensordict import TensorDictBase
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
+from crowdrl.models.predictor import predictor_loss
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
-from crowdrl.training.factories import (make_actor, make_buffer, make_collector, make_env,
-                                        make_exploration, make_loss, make_optimizer, obs_keys, stored_keys)
+from crowdrl.training.factories import (make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
+                                        make_optimizer, make_predictor_of, obs_keys, stored_keys)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
 
@@ -71,9 +72,14 @@ class Trainer:
         self.val_env = make_env(run, split="val", num_envs=t.val_episodes)  # same maker, held-out stream
         self.crowd_cfg = self.env.base_env.config
         self.obs_keys = obs_keys(self.crowd_cfg)  # + the humans' mask when the crowd size varies
-        self.stored_keys = stored_keys(self.obs_keys)
+        self.stored_keys = stored_keys(run, self.obs_keys)
         self.net = make_network(run, int(self.env.action_spec.n)).to(run.device)
-        self.actor = make_actor(run, self.env, self.net)
+        # online planning: the crowd predictor (seeded apart from the global RNG) and its own Adam
+        self.predictor = make_predictor_of(run, self.crowd_cfg.time_step)
+        self.predictor_optimizer = None
+        if self.predictor is not None and any(True for _ in self.predictor.parameters()):
+            self.predictor_optimizer = torch.optim.Adam(self.predictor.parameters(), lr=run.planning.lr)
+        self.actor = make_actor(run, self.env, self.net, self.predictor)
         self.policy, self.egreedy = make_exploration(run, self.env, self.actor)
         self.loss = make_loss(run, self.net, self.obs_keys)
         # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
@@ -89,6 +95,8 @@ class Trainer:
         self.wandb = None
         self._restored: dict[str, Any] | None = None
         self._stop_requested = False
+        self.predictor_loss = math.nan  # mean predictor loss of the last batch's updates (NaN: none)
+        self._predictor_loss_sum = 0.0
         self._pending_episodes: list[tuple[int, float, int]] = []  # finished, not yet logged (logged by 20)
 
     # ------------------------------------------------------------------ state
@@ -110,6 +118,9 @@ class Trainer:
             payload["bonus"] = self.bonus.state_dict()
             if getattr(self.bonus, "optimizer", None) is not None:
                 payload["bonus_optimizer"] = self.bonus.optimizer.state_dict()
+        if self.predictor_optimizer is not None:
+            payload["predictor"] = self.predictor.state_dict()
+            payload["predictor_optimizer"] = self.predictor_optimizer.state_dict()
         if self.run.train.save_buffer:
             payload["buffer"] = self.buffer.state_dict()
         return payload
@@ -131,6 +142,9 @@ class Trainer:
             self.bonus.load_state_dict(data["bonus"])
             if "bonus_optimizer" in data:
                 self.bonus.optimizer.load_state_dict(data["bonus_optimizer"])
+        if self.predictor_optimizer is not None:
+            self.predictor.load_state_dict(data["predictor"])
+            self.predictor_optimizer.load_state_dict(data["predictor_optimizer"])
         if "buffer" in data:
             self.buffer.load_state_dict(data["buffer"])
 
@@ -260,6 +274,7 @@ class Trainer:
         c.update_credit += frames * t.updates_per_frame
         n = int(c.update_credit)
         c.update_credit -= n
+        self.predictor_loss, self._predictor_loss_sum = math.nan, 0.0
         if c.frames < t.warmup_frames:  # warm-up of a fresh run: no updates owed
             return math.nan
         if len(self.buffer) < max(t.batch_size, min(t.warmup_frames, t.buffer_size)):
@@ -269,7 +284,10 @@ class Trainer:
         total = 0.0
         for _ in range(n):
             total += self.update_once(self.buffer.sample())
-        if n and not bool(torch.stack([torch.isfinite(p).all() for p in self.net.parameters()]).all()):  # one sync
+        if n and self.predictor_optimizer is not None:
+            self.predictor_loss = self._predictor_loss_sum / n
+        params = [*self.net.parameters(), *(self.predictor.parameters() if self.predictor is not None else ())]
+        if n and not bool(torch.stack([torch.isfinite(p).all() for p in params]).all()):  # one sync
             raise NonFiniteError(f"the Q network's weights became non-finite by update {c.updates} "
                                  f"(frame {c.frames}); lower train.lr or check the rewards")
         return total / max(n, 1)
@@ -280,6 +298,8 @@ class Trainer:
             reset_noise(self.loss)  # independent noise for the online and the target network
         loss = self.loss.loss_and_grad(sample)["loss"]  # gradients into the Q network's .grad
         self.optimizer.step()
+        if self.predictor_optimizer is not None:
+            self._predictor_loss_sum += self.predictor_step(sample)
         self.counters.updates += 1
         if self.counters.updates % self.updates_per_copy == 0:
             self.loss.update_target()
@@ -288,6 +308,15 @@ class Trainer:
             raise NonFiniteError(f"the loss became non-finite ({value}) at update {self.counters.updates} "
                                  f"(frame {self.counters.frames}); lower train.lr or check the rewards")
         return value
+
+    def predictor_step(self, sample: TensorDictBase) -> float:
+        """One Adam step of the crowd predictor: MSE to the sampled transitions' real next human states."""
+        self.predictor_optimizer.zero_grad(set_to_none=True)
+        loss = predictor_loss(self.predictor, sample.get("robot"), sample.get("humans"), sample.get(("next", "humans")),
+                              sample.get("humans_mask", None))
+        loss.backward()
+        self.predictor_optimizer.step()
+        return float(loss.detach())
 
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
@@ -299,8 +328,10 @@ class Trainer:
                **{f"val/{k}": v for k, v in metrics.as_dict().items()}}
         if score > c.best_val:
             c.best_val, c.best_frames = score, c.frames
-            save_checkpoint(self.ckpt_dir / "best.pt", {"net": self.net.state_dict(), "config": self.config_dict,
-                                                        "frames": c.frames, "val": metrics.as_dict()}, self.fingerprint)
+            best = {"net": self.net.state_dict(), "config": self.config_dict, "frames": c.frames, "val": metrics.as_dict()}
+            if self.predictor_optimizer is not None:
+                best["predictor"] = self.predictor.state_dict()
+            save_checkpoint(self.ckpt_dir / "best.pt", best, self.fingerprint)
             row["val/best"] = 1
         c.history.append((c.frames, metrics.success_rate))
         self.emit(row)
@@ -320,6 +351,7 @@ class Trainer:
             "train/navigation_time": (sum(succ_steps) / len(succ_steps) * self.crowd_cfg.time_step) if succ_steps else math.nan,
             "train/epsilon": float(self.egreedy.eps),
             "train/loss": loss_value,
+            **({"train/predictor_loss": self.predictor_loss} if self.predictor_optimizer is not None else {}),
             **({f"train/intrinsic_{k}": v for k, v in self.intrinsic.last_stats.items()} if self.intrinsic else {}),
             **{f"time/{k}_s": v for k, v in timers.items()},
         })

@@ -1,0 +1,157 @@
+"""SG-D3QN's online planning as a TorchRL policy module (``docs/mdp.md``, "Online planning").
+
+For every environment the planner takes the ``width`` actions with the highest ``Q(s, ·)``,
+predicts the state after each of them and scores it:
+
+    score_d(s, a) = ½ · ( r̂(s, a, ŝ′) + γ̄ · (1 − end̂) · V_{d−1}(ŝ′) + Q(s, a) )
+    V_0(s) = max_a Q(s, a),        V_k(s) = max over the top-``width`` a of score_k(s, a)
+
+and acts by the best ``score_depth``. ``depth = 1`` is upstream's planner (the top 10 actions,
+one step ahead).
+
+* ŝ′: the robot's next state from the exact unicycle kinematics
+  (:func:`crowdrl.sim.kinematics.decode_action`, then ``p + v·Δt``); the humans' from a
+  predictor (:mod:`crowdrl.models.predictor`), one prediction per state (the humans do not see
+  the robot, so it serves every candidate action).
+* r̂ and end̂: the simulator's own :func:`crowdrl.sim.crowd.step_reward` on that step, the
+  humans moving from their positions to the predicted ones (velocity = displacement / Δt, or
+  their current velocity when the simulator judges collisions with it,
+  ``collision_velocity="start"``).
+* A predicted collision or goal ends the look-ahead (``end̂``): such a step is scored by its
+  reward and ``Q(s, a)`` only, as a terminal transition has no successor value in the TD target.
+
+Everything is batched over environments and candidates (``[B·width^k, ...]`` tensors at depth
+``k``); the only Python loop is the recursion over depth. Q is the run's network, called as the
+plain actor calls it, so noisy or dropout heads act inside the planner as they would outside;
+ε-greedy follows it (:class:`torchrl.modules.EGreedyModule` replaces the planner's ``"action"``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import Tensor, nn
+
+from crowdrl.envs.robot_centric import robot_centric
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.crowd import step_reward
+from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
+
+
+class Plan(NamedTuple):
+    """What the planner decided for states ``[*]``."""
+
+    action: Tensor  # [*] int64: the best-scored candidate
+    action_value: Tensor  # [*, A]: Q(s, ·)
+    candidates: Tensor  # [*, width] int64: the top-width actions by Q, best first
+    scores: Tensor  # [*, width]: score_depth(s, candidate)
+
+
+class OnlinePlanner(TensorDictModuleBase):
+    """Depth-``depth``, width-``width`` look-ahead policy on world-frame observations.
+
+    Args:
+        net: the Q network, ``net(robot_rc, humans_rc[, humans_mask]) -> [*, A]``.
+        predictor: ``predictor(robot, humans, humans_mask) -> next humans [*, N, 5]``.
+        config: the simulator's constants (time step, radii, reward); unicycle kinematics only.
+        gamma: the discount per step γ̄.
+        depth, width: look-ahead depth ``>= 1`` and candidates per state ``1..A``.
+        robot_key, humans_key: the world-frame observation keys; ``mask_key``: the crowd mask,
+            read when the tensordict has it (``None``: never).
+
+    Writes ``"action"`` ``[*]``, ``"action_value"`` ``[*, A]`` (Q(s, ·)) and
+    ``"chosen_action_value"`` ``[*, 1]`` (Q of the chosen action), as ``QValueActor`` does.
+    """
+
+    def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,
+                 depth: int = 1, width: int = 10, robot_key: str = "robot", humans_key: str = "humans",
+                 mask_key: str | None = "humans_mask") -> None:
+        super().__init__()
+        if config.robot_kinematics != "unicycle":
+            raise ValueError(f"planning needs the unicycle's discrete actions, got {config.robot_kinematics!r}")
+        if isinstance(depth, bool) or int(depth) != depth or depth < 1:
+            raise ValueError(f"depth must be an integer >= 1, got {depth!r}")
+        if isinstance(width, bool) or int(width) != width or not 1 <= width <= NUM_ACTIONS:
+            raise ValueError(f"width must be an integer in 1..{NUM_ACTIONS}, got {width!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        self.net = net
+        self.predictor = predictor
+        self.config = config
+        self.gamma = float(gamma)
+        self.depth, self.width = int(depth), int(width)
+        self.robot_key, self.humans_key, self.mask_key = robot_key, humans_key, mask_key
+        self.in_keys = [robot_key, humans_key] + ([mask_key] if mask_key is not None else [])
+        self.out_keys = ["action", "action_value", "chosen_action_value"]
+        self.register_buffer("table", action_table(config.robot_v_pref), persistent=False)
+
+    # ------------------------------------------------------------------ the look-ahead
+    def q_values(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None) -> Tensor:
+        """``Q(s, ·)`` ``[M, A]`` of world-frame states ``robot [M, 9]``, ``humans [M, N, 5]``."""
+        robot_rc, humans_rc = robot_centric(robot, humans)
+        if humans_mask is None:
+            return self.net(robot_rc, humans_rc)
+        return self.net(robot_rc, humans_rc, humans_mask)
+
+    def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int
+               ) -> tuple[Tensor, Tensor]:
+        """``(score_depth [M, w], candidates [M, w])`` for states ``[M]`` whose ``Q(s, ·)`` is ``q``."""
+        cfg, dt = self.config, self.config.time_step
+        M, N = humans.shape[0], humans.shape[1]
+        w = self.width
+        q_top, cand = q.topk(w, dim=-1)  # [M, w], best first
+        # the robot after each candidate: the simulator's kinematics
+        velocity, heading = decode_action("unicycle", cand.reshape(-1), robot[:, 8:9].expand(M, w).reshape(-1),
+                                          self.table.to(robot.dtype), cfg.robot_v_pref)
+        velocity, heading = velocity.reshape(M, w, 2), heading.reshape(M, w, 1)
+        position = robot[:, None, 0:2].expand(M, w, 2)
+        robot_next = torch.cat((position + velocity * dt, velocity, robot[:, None, 4:8].expand(M, w, 4), heading), -1)
+        # the crowd after the step: one prediction per state
+        humans_next = self.predictor(robot, humans, humans_mask)  # [M, N, 5]
+        if cfg.collision_velocity == "start":
+            human_velocity = humans[..., 2:4]
+        else:
+            human_velocity = (humans_next[..., 0:2] - humans[..., 0:2]) / dt
+        mask_w = None if humans_mask is None else humans_mask[:, None].expand(M, w, N)
+        judged = step_reward(cfg, position, velocity, robot[:, None, 5:7].expand(M, w, 2),
+                             humans[:, None, :, 0:2].expand(M, w, N, 2), human_velocity[:, None].expand(M, w, N, 2),
+                             mask_w)
+        # the value after the step: V_0 = max Q, V_k = the best score of the next level
+        flat_robot = robot_next.reshape(M * w, -1)
+        flat_humans = humans_next[:, None].expand(M, w, N, humans.shape[-1]).reshape(M * w, N, -1)
+        flat_mask = None if mask_w is None else mask_w.reshape(M * w, N)
+        q_next = self.q_values(flat_robot, flat_humans, flat_mask)
+        if depth == 1:
+            value = q_next.amax(-1)
+        else:
+            value = self.scores(flat_robot, flat_humans, flat_mask, q_next, depth - 1)[0].amax(-1)
+        ended = judged.collided | judged.reached
+        value = torch.where(ended, 0.0, value.reshape(M, w))
+        return 0.5 * (judged.reward + self.gamma * value + q_top), cand
+
+    @torch.no_grad()
+    def plan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None) -> Plan:
+        """The planner's decision for world-frame states ``robot [*, 9]``, ``humans [*, N, 5]``."""
+        lead, N = robot.shape[:-1], humans.shape[-2]
+        robot, humans = robot.reshape(-1, robot.shape[-1]), humans.reshape(-1, N, humans.shape[-1])
+        if humans_mask is not None:
+            humans_mask = humans_mask.reshape(-1, N)
+        q = self.q_values(robot, humans, humans_mask)
+        scores, cand = self.scores(robot, humans, humans_mask, q, self.depth)
+        action = cand.gather(-1, scores.argmax(-1, keepdim=True)).squeeze(-1)
+        return Plan(action.reshape(lead), q.reshape(*lead, -1), cand.reshape(*lead, self.width),
+                    scores.reshape(*lead, self.width))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        mask = tensordict.get(self.mask_key, None) if self.mask_key is not None else None
+        plan = self.plan(tensordict.get(self.robot_key), tensordict.get(self.humans_key), mask)
+        tensordict.set("action", plan.action)
+        tensordict.set("action_value", plan.action_value)
+        tensordict.set("chosen_action_value", plan.action_value.gather(-1, plan.action.unsqueeze(-1)))
+        return tensordict
+
+
+__all__ = ["OnlinePlanner", "Plan"]
