@@ -1,0 +1,47 @@
+"""reproduce.py's settings and axes (as subprocesses): bad settings named, the encoder axis.
+Apart from tests/test_reproduce.py so that the two files run on different workers."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+REPRODUCE = [sys.executable, str(ROOT / "experiments" / "reproduce.py")]
+TINY = ["budget=smoke", "variants=[egreedy,re3]", "seeds=[0,1]", "episodes=6", "reps=200", "jobs=2"]
+
+
+def run(cmd: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+                          env={**os.environ, "WANDB_MODE": "offline"})
+
+
+@pytest.mark.parametrize("override, key", [("variants=[egreedy,bogus]", "variants"), ("seeds=[-1]", "seeds"),
+                                           ("encoders=[sgd3qn,transformer]", "encoders")])
+def test_reproduce_bad_settings_fail_naming_the_key(tmp_path, override, key):
+    proc = run([*REPRODUCE, *TINY, override, f"out={tmp_path / 'r'}"], timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().startswith(f"reproduce.py: {key}"), proc.stderr[-1000:]
+    assert not (tmp_path / "r" / "manifest.json").exists()
+
+
+def test_reproduce_with_another_encoder_names_its_runs_and_rows_by_it(tmp_path):
+    """encoders=[mp_rgl]: runs mp_rgl-<variant>-s<seed>, rows mp_rgl+<variant> with the paper's
+    MP-RGL values (circle), each variant compared with mp_rgl's own ε-greedy."""
+    out = tmp_path / "r"
+    proc = run([*REPRODUCE, "budget=smoke", "encoders=[mp_rgl]", "variants=[egreedy,re3]", "seeds=[0]", "episodes=4",
+                "reps=100", "jobs=2", "scenarios=[circle]", f"out={out}"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert {p.name for p in (out / "runs").iterdir() if p.is_dir()} == {"mp_rgl-egreedy-s0", "mp_rgl-re3-s0"}
+    from omegaconf import OmegaConf
+
+    assert OmegaConf.load(out / "runs" / "mp_rgl-re3-s0" / "config.yaml").encoder.name == "mp_rgl"
+    rows = {r["method"]: r for r in json.loads((out / "table.json").read_text())["rows"]}
+    assert set(rows) == {"mp_rgl+egreedy", "mp_rgl+re3", "orca"}
+    assert rows["mp_rgl+egreedy"]["success_rate_paper"] == 0.941 and "p_improve" in rows["mp_rgl+re3"]
+    assert "p_improve" not in rows["mp_rgl+egreedy"]
+    assert "| mp_rgl+egreedy | 1 |" in (out / "table.md").read_text()
