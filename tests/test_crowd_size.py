@@ -301,3 +301,31 @@ def test_crowd_sizes_script_writes_the_generalisation_table(range_run, tmp_path)
     assert "| 1-4 humans | 1 |" in md and "| ORCA | 1 |" in md
     bad = subprocess.run([*cmd[:-1], "--group", "x=/nonexistent"], capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "/nonexistent does not exist" in bad.stderr
+
+
+@pytest.mark.parametrize("predictor", ["const_vel", "learned"])
+def test_the_planner_on_a_variable_crowd_plans_as_on_the_humans_present(predictor):
+    """planning.enabled with a crowd range: the planner reads the mask, and each row's plan equals
+    the plan of the same state with the absent humans cut off."""
+    from crowdrl.training.factories import make_actor, make_env, make_predictor_of
+    from crowdrl.training.variants import make_network
+
+    torch.manual_seed(0)
+    run = validate({"env": {"min_humans": 2, "max_humans": 6}, "train": {"num_envs": 12},
+                    "planning": {"enabled": True, "predictor": predictor}})
+    env = make_env(run, split="val")
+    net = make_network(run).eval()
+    planner = make_actor(run, env, net, make_predictor_of(run, 0.25))
+    assert "humans_mask" in planner.in_keys
+    td = env.reset()
+    td = env.rollout(5, planner, auto_reset=False, tensordict=td, break_when_any_done=False)[:, -1]["next"]
+    padded = planner.plan(td["robot"], td["humans"], td["humans_mask"])
+    for row in range(12):
+        n = int(td["humans_mask"][row].sum())
+        alone = planner.plan(td["robot"][row:row + 1], td["humans"][row:row + 1, :n])
+        torch.testing.assert_close(padded.scores[row], alone.scores[0], atol=1e-5, rtol=1e-5)
+        assert int(padded.action[row]) == int(alone.action[0])
+    fixed = validate({"train": {"num_envs": 2}, "planning": {"enabled": True}})
+    fixed_env = make_env(fixed, split="val")
+    assert "humans_mask" not in make_actor(fixed, fixed_env, make_network(fixed),
+                                           make_predictor_of(fixed, 0.25)).in_keys

@@ -87,14 +87,15 @@ def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
     """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec (reading the
     humans' mask when ``env``'s crowd size varies: one network serves any crowd), or, with
     ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and ``predictor``
-    (which reads the mask whenever the observation has one)."""
+    (which reads the mask in the same case)."""
     crowd = crowd_env_of(env).config
     if not run.planning.enabled:
         return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd), net=net)
     if predictor is None:
         raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
     p = run.planning
-    return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width)
+    return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width,
+                         mask_key=MASK_KEY if crowd.variable_crowd else None)
 
 
 def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | None:
