@@ -194,3 +194,24 @@ def test_ema_weights_each_point_by_its_episodes():
     assert math.isnan(ema([math.nan], 0.9)[0])
     with pytest.raises(ValueError, match="smoothing"):
         ema([1.0], 1.0)
+
+
+def test_compare_runs_agrees_with_the_reproduce_table(reproduced, tmp_path):
+    """experiments/compare_runs.py on the same run folders gives reproduce.py's means and
+    probability of improvement (ε-greedy first), and refuses a folder without test results."""
+    compare = [sys.executable, str(ROOT / "experiments" / "compare_runs.py"), "--out", str(tmp_path), "--reps", "200"]
+    runs = reproduced / "runs"
+    groups = ["--group", f"egreedy={runs / 'egreedy-s0'},{runs / 'egreedy-s1'}",
+              "--group", f"re3={runs / 're3-s0'},{runs / 're3-s1'}"]
+    proc = run([*compare, *groups, "--json"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    ours = {(r["group"], r["scenario"]): r for r in json.loads(proc.stdout)["rows"]}
+    theirs = {(r["method"], r["scenario"]): r for r in json.loads((reproduced / "table.json").read_text())["rows"]}
+    assert set(ours) == {(m, s) for m in ("egreedy", "re3") for s in ("circle", "square")}
+    for key, row in ours.items():
+        for metric in ("success_rate", "collision_rate", "average_return"):
+            assert row[metric] == pytest.approx(theirs[key][metric]), (key, metric)
+    assert ours[("re3", "circle")]["p_improve"] == pytest.approx(theirs[("re3", "circle")]["p_improve"])
+    assert "p_improve" not in ours[("egreedy", "circle")] and (tmp_path / "table.md").exists()
+    bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}"])
+    assert bad.returncode != 0 and "has no eval-circle/eval.json" in bad.stderr

@@ -1,0 +1,108 @@
+"""Compare groups of finished runs (seeds) on their recorded test results, with confidence intervals.
+
+Each group is a label and run folders that hold ``eval-<scenario>/eval.json`` (what
+``reproduce.py`` and ``evaluate.py checkpoint=<run> hydra.run.dir=<run>/eval-<scenario>`` write).
+Per scenario and group: the mean over seeds of success, collision, navigation time and return
+with a 95 % stratified-bootstrap interval (rliable), and each group's probability of improving on
+the first group's success rate. Writes ``table.md`` and ``table.json`` under ``--out``.
+
+    python experiments/compare_runs.py --out results/planning \\
+        --group "ε-greedy=results/demo/runs/egreedy-s0,results/demo/runs/egreedy-s1,results/demo/runs/egreedy-s2" \\
+        --group "ε-greedy + planning=results/planning/runs/plan-s0,results/planning/runs/plan-s1,results/planning/runs/plan-s2"
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
+from crowdrl.files import atomic_write_bytes
+
+METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
+           ("average_return", "avg return", 4))
+
+
+def parse_group(text: str, scenarios: list[str]) -> tuple[str, list[Path]]:
+    label, sep, folders = text.partition("=")
+    runs = [Path(f.strip()) for f in folders.split(",") if f.strip()]
+    if not sep or not label.strip() or not runs:
+        raise SystemExit(f"--group: expected 'LABEL=RUN[,RUN...]', got {text!r}")
+    for run in runs:
+        for scenario in scenarios:
+            if not (run / f"eval-{scenario}" / "eval.json").exists():
+                raise SystemExit(f"--group {label.strip()!r}: {run} has no eval-{scenario}/eval.json")
+    return label.strip(), runs
+
+
+def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int) -> list[dict]:
+    rows = []
+    for scenario in scenarios:
+        records = {label: [json.loads((r / f"eval-{scenario}" / "eval.json").read_text()) for r in runs]
+                   for label, runs in groups}
+        first = groups[0][0]
+        for label, recs in records.items():
+            row = {"group": label, "scenario": scenario, "seeds": len(recs), "episodes": recs[0]["episodes"]}
+            for key, _, _ in METRICS:
+                values = np.array([r[key] for r in recs], dtype=np.float64)
+                mean, lo, hi = mean_interval({label: values}, reps=reps)[label]
+                row.update({key: mean, f"{key}_lo": lo, f"{key}_hi": hi, f"{key}_per_seed": values.tolist()})
+            if label != first:
+                ours = np.array([r["success_rate"] for r in recs])
+                base = np.array([r["success_rate"] for r in records[first]])
+                p, plo, phi = probability_of_improvement(ours, base, reps=reps)
+                row.update({"p_improve": p, "p_improve_lo": plo, "p_improve_hi": phi})
+            rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int) -> str:
+    def cell(r: dict, key: str, digits: int) -> str:
+        if math.isnan(r[key]):
+            return "–"
+        text = f"{r[key]:.{digits}f}"
+        return text + (f" [{r[f'{key}_lo']:.{digits}f}, {r[f'{key}_hi']:.{digits}f}]" if r["seeds"] > 1 else "")
+
+    lines = [f"Cells: mean over seeds [95 % stratified-bootstrap CI, rliable, {reps} resamples]; "
+             f"P(improve): probability that the group's success rate beats {first}'s on a random pair of seeds.", ""]
+    for scenario in scenarios:
+        lines += [f"## {scenario}", "", "| group | seeds | " + " | ".join(h for _, h, _ in METRICS) + " | P(improve) |",
+                  "|---|---|" + "---|" * (len(METRICS) + 1)]
+        for r in (r for r in rows if r["scenario"] == scenario):
+            p = f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
+            lines.append(f"| {r['group']} | {r['seeds']} | " + " | ".join(cell(r, k, d) for k, _, d in METRICS)
+                         + f" | {p} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--group", action="append", required=True, help="LABEL=RUN[,RUN...]; the first is the baseline")
+    p.add_argument("--scenarios", nargs="+", default=["circle", "square"], choices=["circle", "square"])
+    p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--json", action="store_true", help="print the rows as JSON instead of Markdown")
+    args = p.parse_args(argv)
+    if len(args.group) < 2:
+        raise SystemExit("--group: give at least two groups (the first is the baseline)")
+    if args.reps < 100:
+        raise SystemExit("--reps must be >= 100")
+    groups = [parse_group(g, args.scenarios) for g in args.group]
+    rows = compare(groups, args.scenarios, args.reps)
+    args.out.mkdir(parents=True, exist_ok=True)
+    result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows}
+    atomic_write_bytes(args.out / "table.json", json.dumps(result, indent=1).encode())
+    text = markdown(rows, args.scenarios, groups[0][0], args.reps)
+    atomic_write_bytes(args.out / "table.md", text.encode())
+    print(json.dumps(result, indent=1) if args.json else text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
