@@ -245,30 +245,17 @@ def test_the_td_target_is_the_plain_double_dqn_target():
     assert torch.equal(trainer.loss(sample)["loss"], before)
 
 
-def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_planner(tmp_path, monkeypatch):
+def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_planner(tmp_path):
     """Killed mid-update at frame 224, resumed: the same Q weights, predictor weights and
     optimizer states, test metrics and logged rows as the run never stopped; best.pt carries the
     predictor and the test goes through the planner."""
+    from crowdrl.testing import train_until_killed
     from crowdrl.training.checkpoint import load_checkpoint
     from crowdrl.training.pipeline import evaluate_spec, run_training
-    from crowdrl.training.trainer import Trainer
-
-    class Killed(BaseException):
-        pass
 
     run = validate(EXACT)
     run_training(run, tmp_path / "ref", render=False)
-    update_once = Trainer.update_once
-
-    def dies_at_frame_224(self, sample):
-        if self.counters.frames == 224:
-            raise Killed
-        return update_once(self, sample)
-
-    monkeypatch.setattr(Trainer, "update_once", dies_at_frame_224)
-    with pytest.raises(Killed):
-        run_training(run, tmp_path / "run", render=False)
-    monkeypatch.setattr(Trainer, "update_once", update_once)
+    train_until_killed(run, tmp_path / "run", frame=224)
     run_training(run, tmp_path / "run", render=False)
 
     ref, got = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt") for d in ("ref", "run"))

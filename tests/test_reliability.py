@@ -206,9 +206,6 @@ def test_orca_backend_is_a_validated_config_key_that_reaches_the_env():
 
 # ----------------------------------------------------------------------------- exact resume
 
-class _Killed(BaseException):
-    """Stands in for SIGKILL: the process dies mid-update, nothing after it is written."""
-
 
 EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "preset": "smoke",
          "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 288, "buffer_size": 1000, "batch_size": 16,
@@ -236,27 +233,16 @@ def _final(run_dir: Path) -> tuple[dict, dict, list]:
 # make test-slow, and tests/test_training.py's slow test kills a real train.py process with SIGKILL.
 @pytest.mark.parametrize("name", ["icm", *[pytest.param(n, marks=pytest.mark.slow)
                                            for n in ("egreedy", "noisy", "dropout", "re3")]])
-def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, monkeypatch, name):
+def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, name):
     """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
     resumed by a new trainer: the same final weights (online, target, optimizer), the same test
     metrics and the same logged rows (time columns aside) as the run that was never stopped."""
+    from crowdrl.testing import train_until_killed
     from crowdrl.training.pipeline import run_training
-    from crowdrl.training.trainer import Trainer
 
     run = _exact_run(name)
     run_training(run, tmp_path / "ref", render=False)
-
-    update_once = Trainer.update_once
-
-    def dies_at_frame_224(self, sample):
-        if self.counters.frames == 224:
-            raise _Killed
-        return update_once(self, sample)
-
-    monkeypatch.setattr(Trainer, "update_once", dies_at_frame_224)
-    with pytest.raises(_Killed):
-        run_training(run, tmp_path / "run", render=False)
-    monkeypatch.setattr(Trainer, "update_once", update_once)
+    train_until_killed(run, tmp_path / "run", frame=224)
     assert torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)["counters"]["frames"] == 192
     run_training(run, tmp_path / "run", render=False)
 

@@ -105,4 +105,32 @@ def robot_centric_states(*batch: int, n: int = 10, dtype: torch.dtype = torch.fl
     return robot, humans
 
 
-__all__ = ["KINDS", "ORCA_TOLERANCE", "padded_batch", "random_scene", "robot_centric_states", "rvo2_velocities"]
+class KilledRun(BaseException):
+    """Stops a training run mid-update as SIGKILL would (a ``BaseException``: no handler of the run catches it)."""
+
+
+def train_until_killed(run, folder, frame: int) -> None:
+    """Train ``run`` into ``folder`` and kill it in the first update at ``frame`` collected frames
+    (what an exact-resume test resumes from); fails if the run ends before that frame."""
+    from crowdrl.training.pipeline import run_training
+    from crowdrl.training.trainer import Trainer
+
+    update_once = Trainer.update_once
+
+    def dies_at_frame(self, sample):
+        if self.counters.frames == frame:
+            raise KilledRun(f"killed at frame {frame}")
+        return update_once(self, sample)
+
+    Trainer.update_once = dies_at_frame
+    try:
+        run_training(run, folder, render=False)
+    except KilledRun:
+        return
+    finally:
+        Trainer.update_once = update_once
+    raise AssertionError(f"the run ended without an update at frame {frame}")
+
+
+__all__ = ["KINDS", "ORCA_TOLERANCE", "KilledRun", "padded_batch", "random_scene", "robot_centric_states",
+           "rvo2_velocities", "train_until_killed"]
