@@ -271,3 +271,25 @@ def test_upstream_collision_check_uses_start_velocities():
     assert new.min_separation.item() < old.min_separation.item()
     with pytest.raises(ValueError, match="collision_velocity"):
         CrowdConfig(collision_velocity="later")
+
+
+def test_the_hash_gives_the_same_bits_on_tensors_arrays_and_python_ints():
+    """CPU draws hash NumPy views of the tensors; torch (other devices) and Python ints must agree."""
+    import numpy as np
+
+    g = torch.Generator().manual_seed(0)
+    keys = torch.randint(0, 2**63 - 1, (64, 1), generator=g)
+    idx = torch.cat((torch.randint(0, 2**32, (5,), generator=g), torch.tensor([0, 1, 2**32 - 1])))
+    by_torch = rng.fold_ints(keys, 3, idx)
+    by_numpy = rng.fold_ints(keys.numpy(), 3, idx.numpy())
+    assert by_torch.dtype == torch.int64 and by_numpy.dtype == np.int64
+    assert np.array_equal(by_torch.numpy(), by_numpy)
+    assert torch.equal(rng.fold(keys, 3, idx), by_torch)  # the public CPU path (NumPy)
+    assert torch.equal(rng.fold(keys, torch.tensor(3), idx), by_torch)  # a tensor index = the int
+    one = [rng.fold_ints(int(k), 3, int(i)) for k, i in ((keys[5, 0], idx[2]), (keys[60, 0], idx[7]))]
+    assert one == [int(by_torch[5, 2]), int(by_torch[60, 7])]
+    # pinned: the stream of every episode ever generated (changing these changes every scenario)
+    k = rng.episode_keys("train", 0, torch.tensor([0, 1, 123456789]))
+    assert k.tolist() == [2152384760656441742, 2210934865073242055, 6789695922308809281]
+    assert rng.fold(k, 3, torch.tensor([7, 8, 9])).tolist() == [720644922299940120, 1023220482165265465,
+                                                               2335978299231985139]
