@@ -6,10 +6,10 @@ next to the figures (learning curves over seeds, interval plot, ORCA and the age
 a GIF of a test episode).
 
     python experiments/reproduce.py budget=smoke 'variants=[egreedy,re3]' 'seeds=[0,1]' out=/tmp/repro
-    python experiments/reproduce.py budget=demo jobs=2          # -> results/demo/
+    python experiments/reproduce.py budget=demo jobs=2          # SG-D3QN with its online planning, 5 variants
+    python experiments/reproduce.py budget=demo planning=false jobs=2 out=results/demo   # without (results/demo/)
     python experiments/reproduce.py budget=paper launcher=slurm # the runs as SLURM jobs (submitit)
     python experiments/reproduce.py budget=demo 'encoders=[sarl,lstm_rl,mp_rgl]' 'variants=[egreedy,icm]'
-    python experiments/reproduce.py budget=demo planning=true out=results/demo-planning   # SG-D3QN's planner on
 
 Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs/<variant>-s<seed>``
 (SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method is ``<variant>`` or
@@ -86,7 +86,7 @@ class Plan:
     threads: int
     reps: int
     out: Path
-    planning: bool = False  # every run acts with SG-D3QN's online planning (planning.enabled=true)
+    planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled), as the paper's did
 
     @property
     def methods(self) -> tuple[Method, ...]:
@@ -100,7 +100,7 @@ class Plan:
 
         out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
                "train_scenario": self.train_scenario, "episodes": self.episodes}
-        return {**out, "planning": True} if self.planning else out  # folders made before the key: unchanged
+        return {**out, "planning": self.planning}
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -141,7 +141,7 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers >= 0, got {seeds}")
-    planning = cfg.get("planning", False)
+    planning = cfg.get("planning", True)
     if not isinstance(planning, bool):
         raise PlanError(f"planning: must be true or false, got {planning!r}")
     return Plan(planning=planning, budget=cfg["budget"], encoders=names("encoders", tuple(sorted(ENCODERS))),
@@ -157,6 +157,7 @@ def check_manifest(plan: Plan) -> None:
     want = plan.manifest()
     if path.exists():
         have = json.loads(path.read_text())
+        have.setdefault("planning", False)  # folders made before the key trained without planning
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
             said = ", ".join(f"{k}: folder {a!r} vs now {b!r}" for k, (a, b) in diff.items())
@@ -176,7 +177,7 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
     return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
             f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
             f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
-            *(["planning.enabled=true"] if plan.planning else [])]
+            f"planning.enabled={str(plan.planning).lower()}"]
 
 
 def is_trained(run_dir: Path) -> bool:
@@ -447,6 +448,11 @@ def reproduce(plan: Plan) -> dict[str, Any]:
     write_table(plan, rows, wall_s if pending else None)
     write_figures(plan, rows)
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
+
+
+# the default out= keeps planning and plain tables apart: results/<budget>-planning, results/<budget>
+if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
+    OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 
 
 @hydra.main(config_path=CONF_DIR, config_name="reproduce", version_base="1.3")

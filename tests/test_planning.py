@@ -324,3 +324,12 @@ def test_planning_is_an_axis_of_reproduce(tmp_path):
     mixed = subprocess.run([*cmd, "planning=true", f"out={out}"], capture_output=True, text=True, timeout=120,
                            cwd=root, env=env)
     assert mixed.returncode == 2 and "planning" in mixed.stderr and "other settings" in mixed.stderr, mixed.stderr[-800:]
+    # planning is reproduce.py's default, so the plain folder is refused without the key too, and
+    # a planning folder is refused to a plain run (the key is compared whichever way it is missing)
+    default = subprocess.run([*cmd, f"out={out}"], capture_output=True, text=True, timeout=120, cwd=root, env=env)
+    assert default.returncode == 2 and "planning: folder False vs now True" in default.stderr, default.stderr[-800:]
+    (out / "manifest.json").write_text(json.dumps({**plain, "planning": True}))
+    plain_run = subprocess.run([*cmd, "planning=false", f"out={out}"], capture_output=True, text=True, timeout=120,
+                               cwd=root, env=env)
+    assert plain_run.returncode == 2 and "planning: folder True vs now False" in plain_run.stderr, \
+        plain_run.stderr[-800:]

@@ -121,7 +121,7 @@ def test_evaluate_cli_on_a_checkpoint_equals_its_training_test(reproduced, tmp_p
     trained = json.loads((run_dir / "eval-circle" / "eval.json").read_text())
     for key in ("success_rate", "collision_rate", "timeout_rate", "average_return", "discomfort_frequency"):
         assert rec[key] == trained[key], key
-    assert rec["policy"] == "sgd3qn+re3" and rec["train_seed"] == 1
+    assert rec["policy"] == "sgd3qn+re3+planning" and rec["train_seed"] == 1  # reproduce.py plans by default
     proc = run([*EVALUATE, f"checkpoint={run_dir / 'checkpoints' / 'best.pt'}", "env=square", "eval.episodes=6",
                 "eval.record_episode=2", f"hydra.run.dir={tmp_path / 'sq'}"])  # zero-shot on square, from the .pt
     assert proc.returncode == 0, proc.stderr[-2000:]
