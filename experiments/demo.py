@@ -1,7 +1,7 @@
 """The main job on a small default: train SG-D3QN, test it against ORCA, render it.
 
-Trains the default configuration (SG-D3QN, ε-greedy, circle) for the ``demo`` preset's budget,
-evaluates the best validation checkpoint greedily on the scenario's fixed test cases (1000 by
+Trains the default configuration (SG-D3QN with its online planning, ε-greedy, circle) for the ``demo`` preset's budget,
+evaluates the best validation checkpoint deterministically (ε = 0) on the scenario's fixed test cases (1000 by
 default, test seed 0), runs the ORCA robot baseline on the same cases, prints both side by side,
 and writes the learning curves, a PNG and a GIF of test case 0 into the run folder (printed).
 
@@ -69,7 +69,8 @@ def main(argv: list[str] | None = None) -> dict:
     out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    print(f"training {run.encoder.name} + {run.exploration.name} on {run.env.scenario}, preset {run.preset}, "
+    method = f"{run.encoder.name} + {run.exploration.name}" + (" + planning" if run.planning.enabled else "")
+    print(f"training {method} on {run.env.scenario}, preset {run.preset}, "
           f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)
     start = time.perf_counter()
     summary = run_training(run, out)
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> dict:
     print()
     print(f"{run.train.test_episodes} {run.env.scenario} test cases (test seed {result['test_seed']}); "
           f"{summary['frames']} frames, {summary['updates']} updates, {train_s / 60:.1f} min incl. validation and test")
-    print(format_comparison(agent, orca, f"{run.encoder.name} + {run.exploration.name} (best@{summary['best_frames']})"))
+    print(format_comparison(agent, orca, f"{method} (best@{summary['best_frames']})"))
     verdict = "beats" if result["beats_orca"] else "does NOT beat"
     print(f"\nthe trained policy {verdict} ORCA on success rate")
     print(f"run folder (learning_curves.png, test_case0.png/.gif, eval.json, demo.json): {out.resolve()}")
