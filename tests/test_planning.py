@@ -86,6 +86,49 @@ def test_the_predictor_loss_ignores_absent_humans():
                                                                                       next_humans, mask)
 
 
+def test_the_predictor_update_compiled_and_functional_equal_autograd(monkeypatch):
+    """PredictorLoss: the functional gradients (what compiles) equal loss.backward() with and
+    without a mask, and the compiled step gives the same loss and gradients in one graph."""
+    import crowdrl.models.sgd3qn as sgd3qn
+    from crowdrl.training.predictor_loss import PredictorLoss
+
+    monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels("eager"))  # traced by the outer graph anyway
+    torch.manual_seed(0)
+    robot, humans, mask, next_humans = _transitions()
+    mask = mask.clone()
+    mask[::2, -2:] = False
+    predictor = CrowdStatePredictor()
+    eager = PredictorLoss(predictor)
+
+    def backward_grads(m):
+        loss = eager.loss_and_grad(robot, humans, next_humans, m)
+        return loss, {k: p.grad.clone() for k, p in predictor.named_parameters()}
+
+    for m in (None, mask):
+        ref_loss, ref = backward_grads(m)
+        params = {k: v.detach() for k, v in predictor.named_parameters()}
+        grads, loss = eager.gradients(params, robot, humans, next_humans, m)
+        torch.testing.assert_close(loss, ref_loss, rtol=1e-6, atol=1e-7)
+        # every parameter learns but the attention logits' output biases (softmax ignores a shift) and
+        # the robot's embedding (human nodes do not attend the robot: humans do not see it)
+        assert set(grads) == set(ref)
+        zero = {k for k in ref if float(ref[k].abs().max()) == 0}
+        assert zero <= {"graph.gat0.w_a.2.bias", "graph.gat1.w_a.2.bias"} | {k for k in ref if k.startswith("graph.w_r.")}
+        for k in ref:
+            torch.testing.assert_close(grads[k], ref[k], rtol=1e-5, atol=1e-7)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    compiled = PredictorLoss(predictor, compile=True)
+    for _ in range(2):
+        ref_loss, ref = backward_grads(None)
+        loss = compiled.loss_and_grad(robot, humans, next_humans)
+        torch.testing.assert_close(loss, ref_loss, rtol=1e-5, atol=1e-6)
+        for k, p in predictor.named_parameters():
+            torch.testing.assert_close(p.grad, ref[k], rtol=1e-4, atol=1e-6)
+    counters = torch._dynamo.utils.counters
+    assert counters["stats"]["unique_graphs"] == 1 and not counters["graph_break"], dict(counters["graph_break"])
+
+
 # ----------------------------------------------------------------------------- the planner
 
 class PerfectPredictor(nn.Module):

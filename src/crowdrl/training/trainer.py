@@ -24,13 +24,13 @@ from tensordict import TensorDictBase
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
-from crowdrl.models.predictor import predictor_loss
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
 from crowdrl.training.factories import (make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
                                         make_optimizer, make_predictor_of, obs_keys, stored_keys)
+from crowdrl.training.predictor_loss import PredictorLoss
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
 
@@ -79,6 +79,8 @@ class Trainer:
         self.predictor_optimizer = None
         if self.predictor is not None and any(True for _ in self.predictor.parameters()):
             self.predictor_optimizer = torch.optim.Adam(self.predictor.parameters(), lr=run.planning.lr)
+            # its loss and gradients: one compiled graph under train.compile_loss, as the Q update
+            self.predictor_loss_fn = PredictorLoss(self.predictor, compile=run.train.compile_loss)
         self.actor = make_actor(run, self.env, self.net, self.predictor)
         self.policy, self.egreedy = make_exploration(run, self.env, self.actor)
         self.loss = make_loss(run, self.net, self.obs_keys)
@@ -311,12 +313,10 @@ class Trainer:
 
     def predictor_step(self, sample: TensorDictBase) -> float:
         """One Adam step of the crowd predictor: MSE to the sampled transitions' real next human states."""
-        self.predictor_optimizer.zero_grad(set_to_none=True)
-        loss = predictor_loss(self.predictor, sample.get("robot"), sample.get("humans"), sample.get(("next", "humans")),
-                              sample.get("humans_mask", None))
-        loss.backward()
+        loss = self.predictor_loss_fn.loss_and_grad(sample.get("robot"), sample.get("humans"),
+                                                    sample.get(("next", "humans")), sample.get("humans_mask", None))
         self.predictor_optimizer.step()
-        return float(loss.detach())
+        return float(loss)
 
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
