@@ -85,24 +85,14 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
     """The run folder's own ``config.yaml`` (with ``resume`` set). Command-line overrides other than
     ``resume`` and ``hydra.*`` must agree with it; any that do not are refused, by name."""
     from crowdrl.training import ConfigError, validate
+    from crowdrl.training.config import resume_conflicts
 
     if not (run_dir / "checkpoints" / "last.pt").is_file():
         raise ConfigError(f"resume={run_dir}: no checkpoints/last.pt there")
     if not (run_dir / "config.yaml").is_file():
         raise ConfigError(f"resume={run_dir}: no config.yaml there (not a run folder of train.py)")
     saved = OmegaConf.load(run_dir / "config.yaml")
-    conflicts = []
-    for item in overrides:
-        key = item.split("=", 1)[0].lstrip("+~")
-        if key == "resume" or key.startswith("hydra"):
-            continue
-        if key in ("env", "encoder", "exploration", "logger", "preset"):  # config groups: compare their content
-            same = OmegaConf.select(cfg, key) == OmegaConf.select(saved, key) if key != "preset" else \
-                cfg.get("preset") == saved.get("preset")
-        else:
-            same = OmegaConf.select(cfg, key) == OmegaConf.select(saved, key)
-        if not same:
-            conflicts.append(f"{item} (the run has {key}={OmegaConf.select(saved, key)})")
+    conflicts = resume_conflicts(cfg, saved, overrides)
     if conflicts:
         raise ConfigError(f"resume={run_dir}: a resumed run keeps its own config.yaml; refused override(s): "
                           + "; ".join(conflicts))

@@ -120,6 +120,25 @@ def test_resume_reads_the_folders_own_config_and_refuses_conflicting_overrides(s
     assert json.loads((run / "status.json").read_text())["state"] == "completed"
 
 
+def test_resume_overrides_are_compared_with_schema_defaults_for_keys_a_folder_predates():
+    from crowdrl.training.config import RunConfig, resume_conflicts
+    from omegaconf import OmegaConf
+
+    saved = OmegaConf.to_container(OmegaConf.structured(RunConfig(seed=1)))
+    del saved["planning"]  # a run folder written before the planning key existed
+    saved = OmegaConf.create(saved)
+    current = OmegaConf.structured(RunConfig(seed=1))
+    current.planning.enabled = True
+    assert resume_conflicts(current, saved, ["planning.enabled=true"]) == [
+        "planning.enabled=true (the run has planning.enabled=False)"]
+    current.planning.enabled = False  # the schema's default: what the old run ran with
+    assert resume_conflicts(current, saved, ["planning.enabled=false", "seed=1", "resume=x", "hydra.run.dir=y"]) == []
+    current.seed, current.env.num_humans = 0, 5
+    conflicts = resume_conflicts(current, saved, ["seed=0", "env.num_humans=5", "env=circle"])
+    assert conflicts[:2] == ["seed=0 (the run has seed=1)", "env.num_humans=5 (the run has env.num_humans=10)"]
+    assert len(conflicts) == 3 and conflicts[2].startswith("env=circle (the run has env={")  # a group: its content
+
+
 def test_another_runs_best_checkpoint_is_refused(smoke_runs, tmp_path):
     import shutil
 

@@ -148,6 +148,33 @@ def _one_of(value: Any, key: str, allowed: tuple | list) -> None:
     _check(value in allowed, key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
 
 
+def resume_conflicts(current: DictConfig, saved: DictConfig, overrides: list[str]) -> list[str]:
+    """The command-line ``overrides`` that disagree with a run folder's ``saved`` config.
+
+    ``current`` is the config Hydra composed with those overrides. A key the saved file lacks (it
+    predates the key) takes the schema's default, which is what ``validate(saved)`` runs with.
+    ``resume`` and ``hydra.*`` are not compared; a config group (``env=...``) compares its content.
+
+    >>> from omegaconf import OmegaConf
+    >>> resume_conflicts(OmegaConf.create({"seed": 0}), OmegaConf.create({"seed": 1}), ["seed=0"])
+    ['seed=0 (the run has seed=1)']
+    """
+    def complete(cfg: DictConfig) -> DictConfig:  # every schema key, the file's values over the defaults
+        return OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.to_container(cfg, resolve=True))
+
+    now, then = complete(current), complete(saved)
+    conflicts = []
+    for item in overrides:
+        key = item.split("=", 1)[0].lstrip("+~")
+        if key == "resume" or key.startswith("hydra"):
+            continue
+        had = OmegaConf.select(then, key, default=None)
+        same = OmegaConf.select(now, key, default=None) == had
+        if not same:
+            conflicts.append(f"{item} (the run has {key}={had})")
+    return conflicts
+
+
 def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     """Check a config tree against the schema and the allowed values; return it typed."""
     if isinstance(cfg, RunConfig):
