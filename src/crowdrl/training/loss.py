@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 from torchrl.objectives import LossModule
 
-from crowdrl.models.lazy_compile import LazyCompiled
+from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
 
 
 class D3QNBatch(NamedTuple):
@@ -78,7 +78,7 @@ class D3QNLoss(LossModule):
         self.double = bool(double)
         self.compile = bool(compile)
         self._num_actions: int | None = None
-        self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the D3QN update",
+        self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the D3QN update", options=CPP_WRAPPER,
                                           enabled=self.compile)
 
     @property

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 
-from crowdrl.models.lazy_compile import LazyCompiled
+from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
 from crowdrl.models.predictor import predictor_loss
 
 
@@ -30,7 +30,7 @@ class PredictorLoss:
     def __init__(self, predictor: nn.Module, compile: bool = False) -> None:
         self.predictor = predictor
         self.compile = bool(compile)
-        self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the predictor update",
+        self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the predictor update", options=CPP_WRAPPER,
                                           enabled=self.compile)
 
     def gradients(self, params: dict[str, Tensor], robot: Tensor, humans: Tensor, next_humans: Tensor,
