@@ -6,7 +6,7 @@ collector with the ε-greedy SG-D3QN policy, and where a collected frame goes.
     python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c --json
 
 Each configuration (the baseline checkout's ``experiments/bench_train.py``, then this checkout's
-with the eager and the compiled ORCA) runs in its own subprocess, one thread, 64 environments;
+with the eager or compiled ORCA and the eager or compiled acting network, ``--configs``) runs in its own subprocess, one thread, 64 environments;
 the configurations alternate ``--rounds`` times so that a slow spell of the machine hits them
 alike, and the table gives each one's median frames/s and its ratio to the baseline's median.
 The profile (this checkout, ``--profile-backend``) splits the collector's time into the env
@@ -41,15 +41,17 @@ def bench_train_json(checkout: Path, args: list[str]) -> dict:
     return json.loads(text[text.index("{"):])
 
 
-def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None) -> float:
+def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None, acting: str | None = None) -> float:
     """``collect_frames_per_s`` of ``checkout``'s bench_train.py."""
     args = ["--num-envs", str(num_envs), "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000"]
     if backend is not None:
         args += ["--orca-backend", backend]
+    if acting is not None:
+        args += ["--acting", acting]
     return bench_train_json(checkout, args)["results"][0]["collect_frames_per_s"]
 
 
-def profile(num_envs: int, batches: int, backend: str) -> dict[str, float]:
+def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") -> dict[str, float]:
     """Seconds per collected frame (µs) spent in each part of a collection, by cProfile."""
     import torch
 
@@ -58,7 +60,8 @@ def profile(num_envs: int, batches: int, backend: str) -> dict[str, float]:
     from crowdrl.training.variants import make_network
 
     torch.set_num_threads(1)
-    run = validate({"train": {"num_envs": num_envs, "steps_per_batch": 8}, "env": {"orca_backend": backend}})
+    run = validate({"train": {"num_envs": num_envs, "steps_per_batch": 8, "compile_acting": acting == "compiled"},
+                    "env": {"orca_backend": backend}})
     env = factories.make_env(run)
     policy, _ = factories.make_exploration(run, env, factories.make_actor(run, env, make_network(run, 81)))
     it = iter(factories.make_collector(run, env, policy))
@@ -81,7 +84,8 @@ def profile(num_envs: int, batches: int, backend: str) -> dict[str, float]:
         "env step: rest of the physics": cum("sim/crowd.py", "step") - cum("sim/crowd.py", "human_velocities"),
         "env resets (CrowdNavEnv._reset)": cum("envs/crowd_nav.py", "_reset"),
         "robot-centric transform": cum("envs/robot_centric.py", "_call"),
-        "policy forward (Q network)": cum("models/qnet.py", "forward"),
+        # compiled acting: CompiledModule.forward holds the compiled frame of CrowdQNetwork.forward
+        "policy forward (Q network)": max(cum("models/qnet.py", "forward"), cum("models/lazy_compile.py", "forward")),
     }
     policy_all = cum("tensordict/nn/sequence.py", "forward")  # cProfile counts the outermost call of a recursion
     parts["policy: TensorDict modules, ε-greedy"] = max(0.0, policy_all - parts["policy forward (Q network)"])
@@ -95,37 +99,42 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--batches", type=int, default=40, help="timed collector batches of num_envs x 8 frames")
     p.add_argument("--rounds", type=int, default=2)
-    p.add_argument("--backends", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    p.add_argument("--configs", nargs="+", default=["eager:eager", "compiled:eager", "compiled:compiled"],
+                   choices=[f"{o}:{a}" for o in ("eager", "compiled") for a in ("eager", "compiled")],
+                   help="this checkout's configurations, ORCA:acting (env.orca_backend, train.compile_acting)")
     p.add_argument("--profile-backend", default="compiled", choices=["eager", "compiled", "none"])
+    p.add_argument("--profile-acting", default="compiled", choices=["eager", "compiled"])
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if min(args.num_envs, args.batches, args.rounds) < 1:
         p.error("--num-envs, --batches and --rounds must be >= 1")
     if args.baseline is not None and not (args.baseline / "experiments" / "bench_train.py").is_file():
         p.error(f"--baseline {args.baseline} has no experiments/bench_train.py")
-    configs = ([("baseline", args.baseline, None)] if args.baseline else []) + \
-              [(f"this checkout, ORCA {b}", ROOT, b) for b in args.backends]
-    rates: dict[str, list[float]] = {name: [] for name, _, _ in configs}
+    configs = ([("baseline", args.baseline, None, None)] if args.baseline else []) + \
+              [(f"ORCA {o}, acting {a}", ROOT, o, a) for o, a in (c.split(":") for c in args.configs)]
+    rates: dict[str, list[float]] = {name: [] for name, *_ in configs}
     for _ in range(args.rounds):
-        for name, checkout, backend in configs:
-            rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend))
+        for name, checkout, backend, acting in configs:
+            rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend, acting))
             print(f"{name}: {rates[name][-1]:,.0f} frames/s", file=sys.stderr, flush=True)
     base = statistics.median(rates["baseline"]) if args.baseline else None
     rows = [{"config": name, "frames_per_s": statistics.median(v), "runs": v,
              "ratio_to_baseline": statistics.median(v) / base if base else None} for name, v in rates.items()]
-    parts = profile(args.num_envs, args.batches, args.profile_backend) if args.profile_backend != "none" else {}
+    parts = profile(args.num_envs, args.batches, args.profile_backend, args.profile_acting) \
+        if args.profile_backend != "none" else {}
     out = {"num_envs": args.num_envs, "threads": 1, "baseline": str(args.baseline) if args.baseline else None,
-           "rows": rows, "profile_backend": args.profile_backend, "profile_us_per_frame": parts}
+           "rows": rows, "profile_backend": args.profile_backend, "profile_acting": args.profile_acting,
+           "profile_us_per_frame": parts}
     if args.json:
         print(json.dumps(out, indent=1))
         return out
     print(f"collection, {args.num_envs} envs, 1 thread, ε-greedy SG-D3QN, median of {args.rounds} alternating runs")
-    print(f"{'config':<32} {'frames/s':>10} {'ratio':>7}  runs")
+    print(f"{'config (this checkout unless baseline)':<40} {'frames/s':>10} {'ratio':>7}  runs")
     for r in rows:
         ratio = f"{r['ratio_to_baseline']:.2f}" if r["ratio_to_baseline"] else "-"
-        print(f"{r['config']:<32} {r['frames_per_s']:>10,.0f} {ratio:>7}  {', '.join(f'{x:,.0f}' for x in r['runs'])}")
+        print(f"{r['config']:<40} {r['frames_per_s']:>10,.0f} {ratio:>7}  {', '.join(f'{x:,.0f}' for x in r['runs'])}")
     if parts:
-        print(f"\nwhere a collected frame goes (this checkout, ORCA {args.profile_backend}, cProfile):")
+        print(f"\nwhere a collected frame goes (this checkout, ORCA {args.profile_backend}, acting {args.profile_acting}, cProfile):")
         for k, v in parts.items():
             print(f"  {k:<44} {v:7.1f} µs  ({100 * v / parts['total']:4.1f}%)")
     return out

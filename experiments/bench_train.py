@@ -57,7 +57,9 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     run = validate({"logger": {"name": "csv"}, "encoder": {"name": encoder}, "exploration": {"name": exploration},
                     "threads": args.threads, "env": {"orca_backend": args.orca_backend},
                     "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
-                                                      "compile_loss": loss_backend == "compiled"}})
+                                                      "compile_loss": loss_backend == "compiled",
+                                                      "compile_acting": args.acting == "compiled"},
+                    "planning": {"enabled": args.planning}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
     torch.set_num_threads(args.threads)
     collector = Collector(tr.env, tr.policy, frames_per_batch=args.num_envs * 8, total_frames=-1,
@@ -126,6 +128,10 @@ def main(argv: list[str] | None = None) -> dict:
                    help="run the loss's Q networks compiled (default) and/or eagerly")
     p.add_argument("--orca-backend", default="eager", choices=["eager", "compiled"],
                    help="the simulator's ORCA (env.orca_backend; compiled: compiled once per shape, cached)")
+    p.add_argument("--acting", default="eager", choices=["eager", "compiled"],
+                   help="the acting Q network (train.compile_acting; compiled in the untimed warm-up)")
+    p.add_argument("--planning", action="store_true",
+                   help="act with the online planner and train its predictor (planning.enabled=true)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
@@ -149,12 +155,13 @@ def main(argv: list[str] | None = None) -> dict:
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
     out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders, "batch_size": 100,
-           "orca_backend": args.orca_backend,
+           "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning,
            "results": results}
     if args.json:
         print(json.dumps(out, indent=1))
         return out
-    print(f"threads {args.threads}, {args.num_envs} envs, batch 100, ORCA {args.orca_backend}")
+    print(f"threads {args.threads}, {args.num_envs} envs, batch 100, ORCA {args.orca_backend}, acting {args.acting}"
+          + (", planning" if args.planning else ""))
     for r in results:
         print(f"\n[{r['encoder']}, {r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
         print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "

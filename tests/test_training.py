@@ -339,3 +339,42 @@ def test_bench_train_reports_rates_and_ratios():
     backward = 2 * forward - 2 * 100 * (9 * 64 + 10 * 5 * 64)  # no gradient w.r.t. the observations
     assert first["matmul_mflop_per_update"] == pytest.approx((3 * forward + backward) / 1e6)
     assert first["matmul_gflop_per_s"] == pytest.approx(first["matmul_mflop_per_update"] / first["update_ms"])
+
+
+def test_compiled_acting_equals_eager_and_shares_the_parameters():
+    """``train.compile_acting``: the same actions and Q to float rounding as the eager actor, from
+    the network's live parameters (an in-place update reaches the compiled actor). With planning,
+    so that the Q network runs at two batch shapes (the states and the look-ahead candidates)."""
+    from crowdrl.training import factories
+    from crowdrl.training.variants import make_network
+
+    torch.manual_seed(0)
+    runs = {c: validate({"train": {"num_envs": 4, "compile_acting": c},
+                         "planning": {"enabled": True, "predictor": "const_vel"}}) for c in (False, True)}
+    env = factories.make_env(runs[False])
+    net = make_network(runs[False], 81)
+    predictor = factories.make_predictor_of(runs[False], 0.25)
+    actors = {c: factories.make_actor(run, env, net, predictor) for c, run in runs.items()}
+    td = env.reset()
+    with torch.no_grad():
+        for _ in range(2):
+            out = {c: actor(td.clone()) for c, actor in actors.items()}
+            torch.testing.assert_close(out[True]["action_value"], out[False]["action_value"], rtol=1e-5, atol=1e-6)
+            assert torch.equal(out[True]["action"], out[False]["action"])
+            for p in net.parameters():  # a training step in place: the compiled actor must see it
+                p.add_(0.05 * torch.randn_like(p))
+    assert not torch.equal(out[True]["action_value"], actors[True](td.clone())["action_value"])
+
+
+def test_compiled_module_draws_dropout_from_torchs_generator():
+    from crowdrl.models.lazy_compile import CompiledModule
+
+    net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Dropout(0.5), torch.nn.Linear(16, 3)).train()
+    fast, x = CompiledModule(net, what="a dropout net"), torch.randn(8, 5)
+    torch.manual_seed(1)
+    eager = [net(x) for _ in range(3)]
+    torch.manual_seed(1)
+    compiled = [fast(x) for _ in range(3)]
+    for a, b in zip(compiled, eager):
+        torch.testing.assert_close(a, b)
+    assert not torch.equal(eager[0], eager[1])  # dropout is on: the draws differ from call to call

@@ -33,7 +33,7 @@ def config_fingerprint(config: dict) -> str:
         keep["env"] = {k: v for k, v in keep["env"].items() if k != "orca_backend"}
     train = dict(config.get("train", {}))
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
-              "val_episodes"):
+              "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
         train.pop(k, None)
     keep["train"] = train
     if config.get("planning", {}).get("enabled"):  # planning off: the fingerprint of a run without the key
