@@ -20,6 +20,7 @@ same for ``--loss eager compiled`` (the update runs eagerly or as one ``torch.co
 from __future__ import annotations
 
 import argparse
+import logging
 import json
 import statistics
 import sys
@@ -139,6 +140,10 @@ def main(argv: list[str] | None = None) -> dict:
     if args.warmup_frames < 100:
         p.error("--warmup-frames must be >= 100 (one batch of 100 is sampled from the buffer)")
     torch.set_num_threads(args.threads)
+    if args.json:  # stdout carries the JSON alone (torchrl logs its storage allocation there)
+        import torchrl  # noqa: F401  (its import sets the logger's level; override it after)
+
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
     from crowdrl.models import ENCODERS
 
     unknown = sorted(set(args.encoders) - set(ENCODERS))

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
+from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
@@ -29,15 +30,16 @@ METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), (
 
 
 def parse_group(text: str, scenarios: list[str]) -> tuple[str, list[Path]]:
-    label, sep, folders = text.partition("=")
-    runs = [Path(f.strip()) for f in folders.split(",") if f.strip()]
-    if not sep or not label.strip() or not runs:
-        raise SystemExit(f"--group: expected 'LABEL=RUN[,RUN...]', got {text!r}")
+    """``--group LABEL=RUN[,RUN...]``: every run must hold its test result on each scenario."""
+    try:
+        label, runs = parse_run_group(text)
+    except ValueError as exc:
+        raise SystemExit(f"--group: {exc}") from None
     for run in runs:
         for scenario in scenarios:
             if not (run / f"eval-{scenario}" / "eval.json").exists():
-                raise SystemExit(f"--group {label.strip()!r}: {run} has no eval-{scenario}/eval.json")
-    return label.strip(), runs
+                raise SystemExit(f"--group {label!r}: {run} has no eval-{scenario}/eval.json")
+    return label, runs
 
 
 def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int) -> list[dict]:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from crowdrl.evaluation.report import parse_run_group
 from crowdrl.training.checkpoint import atomic_write_bytes
 from crowdrl.training.pipeline import evaluate_spec
 
@@ -29,14 +30,12 @@ METRICS = ("success_rate", "collision_rate", "timeout_rate", "navigation_time", 
 
 
 def parse_group(text: str) -> tuple[str, list[str]]:
-    label, sep, folders = text.partition("=")
-    if not sep or not label.strip() or not folders.strip():
-        raise SystemExit(f"--group: expected 'LABEL=RUN[,RUN...]', got {text!r}")
-    runs = [f.strip() for f in folders.split(",") if f.strip()]
-    for run in runs:
-        if not Path(run).exists():
-            raise SystemExit(f"--group {label!r}: {run} does not exist")
-    return label.strip(), runs
+    """``--group LABEL=RUN[,RUN...]`` (run folders, one per seed)."""
+    try:
+        label, runs = parse_run_group(text)
+    except ValueError as exc:
+        raise SystemExit(f"--group: {exc}") from None
+    return label, [str(run) for run in runs]
 
 
 def cell(out: Path, what: str, scenario: str, size: int, episodes: int, seed: int) -> dict:

@@ -151,3 +151,17 @@ def test_demo_script_trains_tests_and_compares_with_orca(tmp_path):
     assert result["test_cases"] == 6 and result["agent"]["episodes"] == 6 and result["orca"]["episodes"] == 6
     assert result["beats_orca"] == (result["agent"]["success_rate"] > result["orca"]["success_rate"])
     assert "ORCA (same cases)" in proc.stdout and "ORCA on success rate" in proc.stdout
+
+
+def test_a_run_group_parses_its_label_and_folders_and_names_what_is_wrong(tmp_path):
+    from crowdrl.evaluation.report import parse_run_group
+
+    (tmp_path / "s0").mkdir()
+    (tmp_path / "s1").mkdir()
+    label, runs = parse_run_group(f" ε-greedy = {tmp_path / 's0'}, {tmp_path / 's1'} ,")
+    assert label == "ε-greedy" and runs == [tmp_path / "s0", tmp_path / "s1"]
+    for bad in ("no-equals-sign", "=a,b", "label=", "label= , "):
+        with pytest.raises(ValueError, match="LABEL=RUN"):
+            parse_run_group(bad)
+    with pytest.raises(ValueError, match=r"'x': .*s2 does not exist"):
+        parse_run_group(f"x={tmp_path / 's0'},{tmp_path / 's2'}")

@@ -44,6 +44,25 @@ PAPER = {
 }
 
 
+def parse_run_group(text: str) -> tuple[str, list[Path]]:
+    """A ``LABEL=RUN[,RUN...]`` group of runs (folders, one per seed), each of which must exist.
+
+    >>> parse_run_group("ε-greedy=.,.")
+    ('ε-greedy', [PosixPath('.'), PosixPath('.')])
+
+    Raises ``ValueError`` naming the group for a malformed text or a missing folder.
+    """
+    label, sep, folders = text.partition("=")
+    label = label.strip()
+    runs = [Path(f.strip()) for f in folders.split(",") if f.strip()]
+    if not sep or not label or not runs:
+        raise ValueError(f"expected 'LABEL=RUN[,RUN...]', got {text!r}")
+    for run in runs:
+        if not run.exists():
+            raise ValueError(f"{label!r}: {run} does not exist")
+    return label, runs
+
+
 def paper_value(method: str, scenario: str, key: str) -> float:
     """The paper's value of ``key`` (average_return, success_rate, collision_rate, navigation_time)."""
     row = PAPER.get(method, {}).get(scenario)
