@@ -343,13 +343,15 @@ def test_bench_train_reports_rates_and_ratios():
 
 def test_compiled_acting_equals_eager_and_shares_the_parameters():
     """``train.compile_acting``: the same actions and Q to float rounding as the eager actor, from
-    the network's live parameters (an in-place update reaches the compiled actor). With planning,
-    so that the Q network runs at two batch shapes (the states and the look-ahead candidates)."""
+    the network's live parameters (an in-place update reaches the compiled actor) and its live
+    noise (a noisy head, resampled between calls). With planning, so that the Q network runs at
+    two batch shapes (the states and the look-ahead candidates)."""
+    from crowdrl.exploration.noisy import reset_noise
     from crowdrl.training import factories
     from crowdrl.training.variants import make_network
 
     torch.manual_seed(0)
-    runs = {c: validate({"train": {"num_envs": 4, "compile_acting": c},
+    runs = {c: validate({"train": {"num_envs": 4, "compile_acting": c}, "exploration": {"name": "noisy"},
                          "planning": {"enabled": True, "predictor": "const_vel"}}) for c in (False, True)}
     env = factories.make_env(runs[False])
     net = make_network(runs[False], 81)
@@ -363,6 +365,7 @@ def test_compiled_acting_equals_eager_and_shares_the_parameters():
             assert torch.equal(out[True]["action"], out[False]["action"])
             for p in net.parameters():  # a training step in place: the compiled actor must see it
                 p.add_(0.05 * torch.randn_like(p))
+            reset_noise(net)  # and fresh noise
     assert not torch.equal(out[True]["action_value"], actors[True](td.clone())["action_value"])
 
 
