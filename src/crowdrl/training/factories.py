@@ -88,19 +88,19 @@ def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
     """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec (reading the
     humans' mask when ``env``'s crowd size varies: one network serves any crowd), or, with
     ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and ``predictor``
-    (which reads the mask in the same case). With ``train.compile_acting`` the actor calls ``net``
+    (which reads the mask in the same case). With ``train.compile_acting`` the actor calls ``net`` (and the predictor)
     through ``torch.compile`` (:class:`~crowdrl.models.lazy_compile.CompiledModule`, same
     parameters)."""
     crowd = crowd_env_of(env).config
     if run.train.compile_acting:
         net = CompiledModule(net, what="the acting Q network")
+        if predictor is not None:
+            predictor = CompiledModule(predictor, what="the planner's crowd predictor")
     if not run.planning.enabled:
         return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd), net=net)
     if predictor is None:
         raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
     p = run.planning
-    if run.train.compile_acting:
-        predictor = CompiledModule(predictor, what="the planner's crowd predictor")
     return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width,
                          mask_key=MASK_KEY if crowd.variable_crowd else None)
 
