@@ -29,14 +29,17 @@ STREAMS = {"train": 0x1B873593, "val": 0x68E31DA4, "test": 0x5F3759DF}
 
 
 def _mul32(x: Ints, c: int) -> Ints:
-    """``(x * c) mod 2**32`` for ``0 <= x < 2**32`` without int64 overflow."""
+    """``(x * c) mod 2**32`` for ``0 <= x < 2**32`` without int64 overflow (uint32 arrays: their own
+    wrapping product, the same bits)."""
+    if isinstance(x, (np.ndarray, np.generic)) and x.dtype == np.uint32:
+        return x * np.uint32(c)
     lo = x * (c & 0xFFFF)
     hi = ((x * (c >> 16)) & 0xFFFF) << 16
     return (lo + hi) & _MASK32
 
 
 def hash32(x: Ints) -> Ints:
-    """A well-mixing bijection on 32-bit integers (held in int64)."""
+    """A well-mixing bijection on 32-bit integers (held in int64, or in uint32 NumPy arrays)."""
     x = x & _MASK32
     x = x ^ (x >> 16)
     x = _mul32(x, 0x7FEB352D)
@@ -62,14 +65,26 @@ def fold(key: Tensor, *indices: Tensor | int) -> Tensor:
 
 def fold_ints(h: Ints, *indices: Ints) -> Ints:
     """:func:`fold` on any integer type: int64 tensors (any device), int64 NumPy arrays or Python ints,
-    mixed and broadcast; the bits are the same for all (a Python-int index is hashed in Python)."""
-    for idx in indices:
-        i = hash32(idx + 0x9E3779B9)
+    mixed and broadcast; the bits are the same for all (a Python-int index is hashed in Python).
+
+    With NumPy arrays the key's two lanes (and the indices' low 32 bits, all the hash reads) are
+    held as uint32, whose products wrap mod 2**32 by themselves (:func:`_mul32`): the same bits
+    with a third of the integer ops (``experiments/bench_reset.py``)."""
+    on_numpy = isinstance(h, np.ndarray) or any(isinstance(i, np.ndarray) for i in indices)
+    if on_numpy:
+        h = np.asarray(h, dtype=np.int64)
+        lo, hi = (h & _MASK32).astype(np.uint32), (h >> 32).astype(np.uint32)
+        indices = tuple(i.astype(np.uint32) if isinstance(i, np.ndarray) else i for i in indices)
+    else:
         lo, hi = h & _MASK32, h >> 32
-        lo = hash32(lo ^ i ^ hash32(hi + 0x85EBCA6B))
-        hi = hash32(hi ^ hash32(i ^ 0xC2B2AE35) ^ lo) & 0x7FFFFFFF
-        h = (hi << 32) | lo
-    return h
+    with np.errstate(over="ignore"):  # uint32 sums wrap on purpose (0-d arrays would warn as scalars)
+        for idx in indices:
+            i = hash32(idx + 0x9E3779B9)
+            lo = hash32(lo ^ i ^ hash32(hi + 0x85EBCA6B))
+            hi = hash32(hi ^ hash32(i ^ 0xC2B2AE35) ^ lo) & 0x7FFFFFFF
+    if on_numpy:
+        return (hi.astype(np.int64) << 32) | lo.astype(np.int64)
+    return (hi << 32) | lo
 
 
 def uniform(key: Tensor, *indices: Tensor | int, dtype: torch.dtype = torch.float32) -> Tensor:
