@@ -15,7 +15,8 @@ Every run is an independent Hydra job (``experiments/train.py``) in ``<out>/runs
 (SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method is ``<variant>`` or
 ``<encoder>+<variant>``, compared with the ε-greedy run of the same encoder.
 A rerun skips finished runs and resumes killed ones from their last checkpoint; a folder made by
-another budget, test-case count or code version is refused.
+another budget, test-case count or code version is refused. Finished runs' records (not their
+checkpoints) are kept in git, so a clone rebuilds the table and curves without training.
 """
 
 from __future__ import annotations
@@ -401,6 +402,9 @@ def write_figures(plan: Plan, rows: list[dict[str, Any]]) -> None:
     first = plan.methods[0]
     agent_dir = plan.run_dir(first, plan.seeds[0])
     scenario = plan.scenarios[0]
+    if not (agent_dir / "checkpoints" / "best.pt").exists():  # a clone holds the runs' records, not checkpoints
+        print(f"no checkpoint in {agent_dir}: side_by_side.png and the GIF are left as they are", flush=True)
+        return
     _, orca = evaluate_spec(policy="orca", scenario=scenario, episodes=1, record_episode=0)
     _, agent = evaluate_spec(checkpoint=agent_dir, scenario=scenario, episodes=1, record_episode=0)
     label = f"SG-D3QN + {first.variant}" if first.encoder == DEFAULT_ENCODER else f"{first.encoder} + {first.variant}"

@@ -86,6 +86,33 @@ def test_reproduce_rerun_trains_nothing_and_refuses_other_settings(reproduced):
     assert other.returncode == 2 and "budget" in other.stderr and "fresh out=" in other.stderr
 
 
+def test_a_clone_rebuilds_the_table_from_the_committed_records(reproduced, tmp_path):
+    """What git keeps of a table's folder (its .gitignore: no checkpoints, Hydra files or logs) is
+    enough to rebuild the table and the curves without training; the checkpoint figures stay."""
+    if subprocess.run(["git", "rev-parse"], cwd=ROOT, capture_output=True).returncode != 0:
+        pytest.skip("not a git checkout: .gitignore cannot be asked")
+    files = [p.relative_to(reproduced) for p in reproduced.rglob("*") if p.is_file()]
+    as_in_repo = [f"results/table/{f}" for f in files]
+    ignored = set(subprocess.run(["git", "check-ignore", "--no-index", "--stdin"], cwd=ROOT, input="\n".join(as_in_repo),
+                                 capture_output=True, text=True).stdout.split())
+    kept = [f for f, r in zip(files, as_in_repo) if r not in ignored]
+    assert any(f.parts[-2:] == ("checkpoints", "best.pt") for f in files)
+    assert not any("checkpoints" in f.parts or ".hydra" in f.parts for f in kept)
+    assert {"scalars.jsonl", "summary.json", "status.json", "config.yaml", "eval.json"} <= {f.name for f in kept}
+    clone = tmp_path / "results"
+    for f in kept:
+        (clone / f).parent.mkdir(parents=True, exist_ok=True)
+        (clone / f).write_bytes((reproduced / f).read_bytes())
+    (clone / "table.json").unlink()
+    (clone / "curves.png").unlink()
+    proc = run([*REPRODUCE, *TINY, f"out={clone}"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "0 run(s) to train or finish, 4 already done" in proc.stdout and "no checkpoint" in proc.stdout
+    assert not list(clone.glob("runs/*/checkpoints"))
+    assert json.loads((clone / "table.json").read_text())["rows"] == json.loads((reproduced / "table.json").read_text())["rows"]
+    assert (clone / "curves.png").exists() and (clone / "side_by_side.png").exists()
+
+
 def test_reproduce_resumes_killed_runs(reproduced):
     """The runs killed mid-training finished from their checkpoints: the smoke budget exactly, no
     validation logged twice, status completed."""
