@@ -272,15 +272,19 @@ EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "pre
 def test_the_td_target_is_the_plain_double_dqn_target():
     """The planner selects actions only: the loss of a sampled batch does not change when the
     predictor (hence every plan) changes."""
-    from crowdrl.training.factories import stored_keys
+    from crowdrl.training.factories import crowd_config, obs_keys, stored_keys
     from crowdrl.training.trainer import Trainer
 
     trainer = Trainer(validate(EXACT), Path("/nonexistent-never-written"))
     trainer.buffer.extend(trainer.env.rollout(8, trainer.policy, break_when_any_done=False)
                           .select(*stored_keys(trainer.run)))
     sample = trainer.buffer.sample()
-    for key in ("robot", "humans", "humans_mask", ("next", "humans")):
+    for key in ("robot", "humans", ("next", "humans")):
         assert key in sample.keys(True), f"the buffer must keep {key} for the predictor"
+    # a fixed crowd: no mask, for the predictor as for the planner acting; a varying one keeps it
+    assert "humans_mask" not in sample.keys()
+    varying = validate({**EXACT, "env": {"num_humans": 4, "min_humans": 3}})
+    assert "humans_mask" in stored_keys(varying, obs_keys(crowd_config(varying)))
     before = trainer.loss(sample)["loss"]
     with torch.no_grad():
         for p in trainer.predictor.parameters():

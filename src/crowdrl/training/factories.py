@@ -33,8 +33,9 @@ from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, us
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
 # what the learned crowd predictor trains on: world-frame states and the real next human states (one
-# step later: the n-step transform moves only the observation keys)
-PREDICTOR_KEYS = ["robot", "humans", "humans_mask", ("next", "humans")]
+# step later: the n-step transform moves only the observation keys), plus the humans' mask where the
+# crowd size varies (``obs_keys``), as the planner reads it when acting
+PREDICTOR_KEYS = ["robot", "humans", ("next", "humans")]
 
 
 def obs_keys(cfg: CrowdConfig) -> tuple[str, ...]:
@@ -132,9 +133,10 @@ def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_
     return D3QNLoss(net, keys, gamma=t.gamma, double=True, compile=t.compile_loss)
 
 
-def make_optimizer(run: RunConfig, net: torch.nn.Module) -> torch.optim.Optimizer:
-    """Adam; fused (one kernel for all parameters, ~4x cheaper than the per-tensor loop on CPU)."""
-    return torch.optim.Adam(net.parameters(), lr=run.train.lr, fused=True)
+def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None) -> torch.optim.Optimizer:
+    """Adam at ``lr`` (default ``train.lr``); fused (one kernel for all parameters, ~4x cheaper than
+    the per-tensor loop on CPU): the Q network's and the crowd predictor's."""
+    return torch.optim.Adam(net.parameters(), lr=run.train.lr if lr is None else lr, fused=True)
 
 
 def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None,

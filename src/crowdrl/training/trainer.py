@@ -28,7 +28,7 @@ from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
-from crowdrl.training.factories import (make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
+from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
                                         make_optimizer, make_predictor_of, obs_keys, stored_keys)
 from crowdrl.training.predictor_loss import PredictorLoss
 from crowdrl.training.scalars import ScalarLog, WandbMirror
@@ -78,7 +78,7 @@ class Trainer:
         self.predictor = make_predictor_of(run, self.crowd_cfg.time_step)
         self.predictor_optimizer = None
         if self.predictor is not None and any(True for _ in self.predictor.parameters()):
-            self.predictor_optimizer = torch.optim.Adam(self.predictor.parameters(), lr=run.planning.lr)
+            self.predictor_optimizer = make_optimizer(run, self.predictor, lr=run.planning.lr)
             # its loss and gradients: one compiled graph under train.compile_loss, as the Q update
             self.predictor_loss_fn = PredictorLoss(self.predictor, compile=run.train.compile_loss)
         self.actor = make_actor(run, self.env, self.net, self.predictor)
@@ -314,7 +314,8 @@ class Trainer:
     def predictor_step(self, sample: TensorDictBase) -> float:
         """One Adam step of the crowd predictor: MSE to the sampled transitions' real next human states."""
         loss = self.predictor_loss_fn.loss_and_grad(sample.get("robot"), sample.get("humans"),
-                                                    sample.get(("next", "humans")), sample.get("humans_mask", None))
+                                                    sample.get(("next", "humans")),
+                                                    sample.get(MASK_KEY) if MASK_KEY in self.obs_keys else None)
         self.predictor_optimizer.step()
         return float(loss)
 
