@@ -13,6 +13,7 @@ float64). The ``test``/seed 0 rows of 1000 episodes are the project's fixed test
 from __future__ import annotations
 
 import hashlib
+import math
 
 import pytest
 import torch
@@ -140,3 +141,41 @@ def test_spawned_blocks_equal_episodes_spawned_alone():
     assert torch.equal(first["episode_id"].squeeze(-1), torch.arange(3, 6))
     assert torch.equal(env.state.human_position, alone.human_position)
     assert torch.equal(env.state.human_goal, alone.human_goal)
+
+
+@pytest.mark.parametrize("scenario", ["circle", "square"])
+def test_new_goals_are_the_first_clear_candidate_of_each_human(scenario):
+    """``new_human_goals`` against the rule written out one human and one round at a time (with
+    ``linalg.vector_norm``): the first of ``GOAL_ROUNDS`` candidates at least ``spawn_clearance`` from every
+    agent's position and goal, else the last; humans that need no goal keep theirs."""
+    cfg = CrowdConfig(scenario=scenario, num_humans=6)
+    B = 40
+    state = initial_states(cfg, rng.episode_keys("train", 5, torch.arange(B)))
+    gen = torch.Generator().manual_seed(1)
+    moved = state.human_position + (torch.rand(B, 6, 2, generator=gen) - 0.5) * 6  # spread them about
+    state = state.replace(human_position=moved, step_count=torch.randint(1, 90, (B,), generator=gen))
+    needs = torch.rand(B, 6, generator=gen) < 0.4
+    goals = scenarios.new_human_goals(cfg, state, needs)
+
+    assert torch.equal(goals[~needs], state.human_goal[~needs])
+    agents = torch.cat((state.robot_position.unsqueeze(1), state.human_position,
+                        state.robot_goal.unsqueeze(1), state.human_goal), 1)  # [B, 2N+2, 2]
+    picked_late = 0
+    for b, h in needs.nonzero().tolist():
+        chosen = None
+        for r in range(scenarios.GOAL_ROUNDS):
+            u = [rng.uniform(state.episode_key[b:b + 1], scenarios._TAG_NEW_GOAL, state.step_count[b:b + 1],
+                             (h * scenarios.GOAL_ROUNDS + r) * 4 + c)[0] for c in range(4)]
+            if scenario == "circle":
+                angle = u[0] * (2 * math.pi)
+                cand = torch.stack((cfg.circle_radius * torch.cos(angle) + (u[1] - 0.5) * cfg.human_v_pref,
+                                    cfg.circle_radius * torch.sin(angle) + (u[2] - 0.5) * cfg.human_v_pref))
+            else:
+                side = -1.0 if u[3] > 0.5 else 1.0
+                cand = torch.stack((u[0] * cfg.square_width * 0.5 * side, (u[1] - 0.5) * cfg.square_width))
+            clear = bool((torch.linalg.vector_norm(agents[b] - cand, dim=-1) >= cfg.spawn_clearance).all())
+            if clear or r == scenarios.GOAL_ROUNDS - 1:
+                chosen, picked_late = cand, picked_late + (r > 0)
+                break
+        assert torch.equal(goals[b, h], chosen), (b, h)
+    assert picked_late > 0  # the clearance rejected some first candidates: the rule was exercised
