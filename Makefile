@@ -23,10 +23,11 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # test files run in parallel, one per worker (a file's tests stay together, in order, sharing
-# its module fixtures); TEST_WORKERS=1 runs them one after another
+# its module fixtures); TEST_WORKERS=1 runs them one after another. The 15 slowest tests are
+# listed at the end, to keep the suite's 10-minute budget in sight.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
