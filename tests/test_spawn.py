@@ -126,19 +126,22 @@ if __name__ == "__main__":
 
 
 
-def test_spawned_blocks_equal_episodes_spawned_alone():
-    """The env spawns its stream's episodes ahead in blocks; each equals the episode spawned alone."""
+@pytest.mark.parametrize("num_envs, block", [(3, 1024), (300, 1200)])
+def test_spawned_blocks_equal_episodes_spawned_alone(num_envs, block):
+    """The env spawns its stream's episodes ahead in blocks (larger for larger batches); each equals
+    the episode spawned alone."""
     from crowdrl.envs.crowd_nav import CrowdNavEnv
     from crowdrl.sim import rng
     from crowdrl.sim.config import CrowdConfig
     from crowdrl.sim.scenarios import initial_states
 
-    env = CrowdNavEnv("square", num_envs=3, num_humans=6, seed=2)
+    env = CrowdNavEnv("square", num_envs=num_envs, num_humans=6, seed=2)
+    assert env.spawn_block == block
     env.reset()
-    first = env.reset()  # a second full reset: episodes 3, 4, 5, from the block spawned at the first
-    alone = initial_states(CrowdConfig(scenario="square", num_humans=6),
-                           rng.episode_keys("train", 2, torch.arange(3, 6)))
-    assert torch.equal(first["episode_id"].squeeze(-1), torch.arange(3, 6))
+    first = env.reset()  # a second full reset: the next episodes, from the block spawned at the first
+    ids = torch.arange(num_envs, 2 * num_envs)
+    alone = initial_states(CrowdConfig(scenario="square", num_humans=6), rng.episode_keys("train", 2, ids))
+    assert torch.equal(first["episode_id"].squeeze(-1), ids)
     assert torch.equal(env.state.human_position, alone.human_position)
     assert torch.equal(env.state.human_goal, alone.human_goal)
 

@@ -15,7 +15,10 @@ from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
 SPLITS = tuple(rng.STREAMS)
-SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (~0.1 ms each, vs ~8 ms for one alone)
+SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (~0.04 ms each, vs ~8 ms for one alone)
+# Larger batches spawn larger blocks (a spawn's per-call cost is then shared by more episodes: ~0.017 ms each
+# at 4096), up to this many episodes ahead (~1.5 MB of states at N = 10).
+SPAWN_BLOCK_MAX = 8192
 
 
 class CrowdNavEnv(EnvBase):
@@ -41,7 +44,7 @@ class CrowdNavEnv(EnvBase):
     queued with :meth:`load_episodes` (or the reset tensordict of the bare env carries
     ``"load_episode"`` ``[B, 1]``), in which case those episodes are loaded (episode ``i`` is the
     same whatever ``num_envs`` or device). The stream's episodes are spawned ahead in blocks of
-    :data:`SPAWN_BLOCK` (one batched rejection sampling), so the partial resets of a collector
+    :attr:`spawn_block` (one batched rejection sampling), so the partial resets of a collector
     cost a copy, not a spawn each; the states are the same as spawning each episode alone.
 
     :meth:`snapshot` and :meth:`restore` save and reload the in-flight episodes for an exact
@@ -101,6 +104,12 @@ class CrowdNavEnv(EnvBase):
     @property
     def num_humans(self) -> int:
         return self.config.num_humans
+
+    @property
+    def spawn_block(self) -> int:
+        """Episodes of the stream spawned ahead at once: four batches' worth, within
+        ``SPAWN_BLOCK .. SPAWN_BLOCK_MAX`` (a reset needing more spawns what it needs)."""
+        return min(SPAWN_BLOCK_MAX, max(SPAWN_BLOCK, 4 * self.num_envs))
 
     @property
     def next_episode(self) -> int:
@@ -278,7 +287,7 @@ class CrowdNavEnv(EnvBase):
         """Initial states of episodes ``first .. first+k-1`` of the stream, from the block spawned ahead."""
         start, block = self._spawned if self._spawned is not None else (-1, None)
         if block is None or first < start or first + k > start + block.batch_size:
-            ids = torch.arange(first, first + max(k, SPAWN_BLOCK), device=self.device)
+            ids = torch.arange(first, first + max(k, self.spawn_block), device=self.device)
             block = initial_states(self.config, rng.episode_keys(self.split, self._seed, ids), dtype=self.dtype)
             start, self._spawned = first, (first, block)
         part = block.index(slice(first - start, first - start + k))
