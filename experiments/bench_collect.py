@@ -4,6 +4,9 @@ collector with the ε-greedy SG-D3QN policy, and where a collected frame goes.
     git worktree add /tmp/crowdrl-6dfef2c 6dfef2c
     python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c        # table
     python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c --json
+    # two recent commits, both with the compiled ORCA and acting network:
+    python experiments/bench_collect.py --baseline /tmp/crowdrl-parent --baseline-config compiled:compiled \
+        --configs compiled:compiled --profile-backend none
 
 Each configuration (the baseline checkout's ``experiments/bench_train.py``, then this checkout's
 with the eager or compiled ORCA and the eager or compiled acting network, ``--configs``) runs in its own subprocess, one thread, 64 environments;
@@ -102,6 +105,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--configs", nargs="+", default=["eager:eager", "compiled:eager", "compiled:compiled"],
                    choices=[f"{o}:{a}" for o in ("eager", "compiled") for a in ("eager", "compiled")],
                    help="this checkout's configurations, ORCA:acting (env.orca_backend, train.compile_acting)")
+    p.add_argument("--baseline-config", default=None,
+                   choices=[f"{o}:{a}" for o in ("eager", "compiled") for a in ("eager", "compiled")],
+                   help="the baseline's ORCA:acting, for a baseline whose bench_train.py has --orca-backend and "
+                        "--acting (default: its own defaults; 6dfef2c has neither flag)")
     p.add_argument("--profile-backend", default="compiled", choices=["eager", "compiled", "none"])
     p.add_argument("--profile-acting", default="compiled", choices=["eager", "compiled"])
     p.add_argument("--json", action="store_true")
@@ -110,7 +117,10 @@ def main(argv: list[str] | None = None) -> dict:
         p.error("--num-envs, --batches and --rounds must be >= 1")
     if args.baseline is not None and not (args.baseline / "experiments" / "bench_train.py").is_file():
         p.error(f"--baseline {args.baseline} has no experiments/bench_train.py")
-    configs = ([("baseline", args.baseline, None, None)] if args.baseline else []) + \
+    if args.baseline_config is not None and args.baseline is None:
+        p.error("--baseline-config needs --baseline")
+    base_orca, base_acting = args.baseline_config.split(":") if args.baseline_config else (None, None)
+    configs = ([("baseline", args.baseline, base_orca, base_acting)] if args.baseline else []) + \
               [(f"ORCA {o}, acting {a}", ROOT, o, a) for o, a in (c.split(":") for c in args.configs)]
     rates: dict[str, list[float]] = {name: [] for name, *_ in configs}
     for _ in range(args.rounds):
@@ -123,6 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     parts = profile(args.num_envs, args.batches, args.profile_backend, args.profile_acting) \
         if args.profile_backend != "none" else {}
     out = {"num_envs": args.num_envs, "threads": 1, "baseline": str(args.baseline) if args.baseline else None,
+           "baseline_config": args.baseline_config,
            "rows": rows, "profile_backend": args.profile_backend, "profile_acting": args.profile_acting,
            "profile_us_per_frame": parts}
     if args.json:
