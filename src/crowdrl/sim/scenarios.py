@@ -70,9 +70,7 @@ def _distances(points: Tensor, others: Tensor) -> Tensor:
 
 
 def _clear_of(points: Tensor, others: Tensor, min_dist: float) -> Tensor:
-    """``points [B, R, 2]`` at least ``min_dist`` from every one of ``others [B, M, 2]``: ``[B, R]``."""
-    if others.shape[1] == 0:
-        return torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
+    """``points [B, R, 2]`` at least ``min_dist`` from every one of ``others [B, M, 2]`` (M >= 1): ``[B, R]``."""
     return _distances(points, others).amin(0) >= min_dist
 
 
@@ -249,7 +247,6 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     when one of ``GOAL_ROUNDS`` candidates allows it; otherwise the last candidate is used (the
     episode must go on). Only the humans that need a goal are computed.
     """
-    B, N = needs_goal.shape
     dtype, device = state.human_goal.dtype, state.device
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
