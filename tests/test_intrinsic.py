@@ -135,7 +135,8 @@ def test_icm_forward_error_falls_on_a_repeated_transition():
     last = icm.bonus(td).mean()
     assert last < 0.2 * first
     assert stats[-1]["icm_inverse_loss"] < stats[0]["icm_inverse_loss"]
-    assert set(stats[0]) == {"icm_loss", "icm_forward_loss", "icm_inverse_loss", "icm_inverse_accuracy"}
+    assert set(stats[0]) == {"icm_loss", "icm_forward_loss", "icm_inverse_loss", "icm_inverse_accuracy",
+                             "icm_feature_norm"}
 
 
 @pytest.mark.parametrize("detach_target", [True, False])

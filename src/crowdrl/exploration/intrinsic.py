@@ -6,6 +6,11 @@ asks an :class:`IntrinsicBonus` (ICM, RE3, ...) for ``r_in`` with the bonus's *c
 so bonuses are never stale, and writes ``r = r_ext + beta * r_in``. The buffer's storage is never
 touched: sampling returns a copy, and only that copy is rewritten.
 
+Options that keep a bonus on a fixed scale work with any bonus (:mod:`crowdrl.exploration.normalize`):
+``obs_norm`` whitens the bonus's input observations, ``reward_norm`` divides ``r_in`` by a running
+std, optionally centres and clips it, and ``terminal_value_gamma`` adds at every terminal
+transition the bonus the agent forgoes by ending the episode (see :class:`IntrinsicRewardTransform`).
+
 Nothing here depends on the crowd simulator: any TorchRL env whose transitions carry the
 observation keys, the action and ``("next", "reward")`` works.
 """
@@ -14,13 +19,15 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Callable, Iterator, Sequence, Union
+from typing import Any, Callable, Iterator, Sequence, Union
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor, nn
 from torchrl.envs import Transform
+
+from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer, RunningMeanStd
 
 Beta = Union[float, Callable[[], float]]
 
@@ -137,6 +144,16 @@ class IntrinsicRewardTransform(Transform):
             rewards go; the latter two get the reward's shape.
         update_bonus: if True, ``bonus.update(batch)`` runs on every sampled batch *after* the
             rewards are computed (so ICM trains on the batches the Q loss sees).
+        obs_norm: an :class:`ObservationNormalizer` applied to the bonus's input observations
+            (``s`` and ``s'``, their statistics updated on every sampled batch); ``None``: raw.
+        reward_norm: a :class:`RewardNormalizer` applied to ``r_in`` before ``beta``; ``None``: raw.
+        terminal_value_gamma: if given (the agent's discount ``gamma``), a transition that ends the
+            episode (``terminated_key``) also gets ``beta * gamma**m * mean_r / (1 - gamma)``, where
+            ``mean_r`` is the running mean of the (normalised) ``r_in`` and ``m`` the transition's
+            ``steps_key`` (1 if absent): the bonus forgone by ending the episode, valued at its
+            mean. A positive bonus then never makes staying out worth more than arriving (RND treats
+            the intrinsic return as non-episodic for the same reason).
+        terminated_key, steps_key: where the termination flag and the n-step count are read.
 
     ``beta == 0`` returns the extrinsic reward bit for bit. Neither the transform nor the
     bundled bonuses draw from the global RNG. ``inv`` (run at ``extend``) is the identity, and
@@ -155,6 +172,11 @@ class IntrinsicRewardTransform(Transform):
         reward_ext_key: NestedKey = ("next", "reward_ext"),
         reward_int_key: NestedKey = ("next", "reward_int"),
         update_bonus: bool = True,
+        obs_norm: ObservationNormalizer | None = None,
+        reward_norm: RewardNormalizer | None = None,
+        terminal_value_gamma: float | None = None,
+        terminated_key: NestedKey = ("next", "terminated"),
+        steps_key: NestedKey = "steps_to_next_obs",
     ) -> None:
         super().__init__(in_keys=[], out_keys=[])
         if not isinstance(bonus, IntrinsicBonus):
@@ -179,7 +201,41 @@ class IntrinsicRewardTransform(Transform):
         self.reward_ext_key = _as_key(reward_ext_key)
         self.reward_int_key = _as_key(reward_int_key)
         self.update_bonus = bool(update_bonus)
+        for name, value, kind in (("obs_norm", obs_norm, ObservationNormalizer),
+                                  ("reward_norm", reward_norm, RewardNormalizer)):
+            if value is not None and not isinstance(value, kind):
+                raise TypeError(f"{name} must be a {kind.__name__} or None, got {type(value).__name__}")
+        self.obs_norm = obs_norm
+        self.reward_norm = reward_norm
+        if terminal_value_gamma is not None:
+            terminal_value_gamma = float(terminal_value_gamma)
+            if not 0.0 < terminal_value_gamma < 1.0:
+                raise ValueError(f"terminal_value_gamma must lie in (0, 1) (the discount), got {terminal_value_gamma}")
+        self.terminal_value_gamma = terminal_value_gamma
+        self.terminated_key = _as_key(terminated_key)
+        self.steps_key = _as_key(steps_key)
+        self.bonus_stats = RunningMeanStd()  # of the r_in that beta scales (after reward_norm)
         self.last_stats: dict[str, float] = {}
+
+    def stats_state_dict(self) -> dict[str, Any]:
+        """The running statistics of the options (for checkpoints; the bonus saves its own state)."""
+        out: dict[str, Any] = {"bonus_stats": self.bonus_stats.state_dict()}
+        if self.obs_norm is not None:
+            out["obs_norm"] = self.obs_norm.state_dict()
+        if self.reward_norm is not None:
+            out["reward_norm"] = self.reward_norm.state_dict()
+        return out
+
+    def load_stats_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`stats_state_dict` returned."""
+        self.bonus_stats.load_state_dict(state["bonus_stats"])
+        for name in ("obs_norm", "reward_norm"):
+            module = getattr(self, name)
+            if (module is None) != (name not in state):
+                raise KeyError(f"the saved statistics {'lack' if module is not None else 'hold'} {name!r}, "
+                               f"which this transform {'has' if module is not None else 'does not have'}")
+            if module is not None:
+                module.load_state_dict(state[name])
 
     def current_beta(self) -> float:
         """The scale in force now (calls the schedule if ``beta`` is callable)."""
@@ -196,9 +252,15 @@ class IntrinsicRewardTransform(Transform):
     def bonus_input(self, td: TensorDictBase) -> TensorDictBase:
         """The batch in the bonus's layout: ``in_keys`` for ``s``, ``("next", k)`` for ``s'``, ``"action"``."""
         out = TensorDict({}, batch_size=td.batch_size, device=td.device)
-        for bonus_key, key, next_key in zip(self.bonus.in_keys, self.obs_keys, self.next_obs_keys):
-            out.set(bonus_key, self._get(td, key))
-            out.set(("next", *_tuple(bonus_key)), self._get(td, next_key))
+        obs = [self._get(td, key) for key in self.obs_keys]
+        next_obs = [self._get(td, key) for key in self.next_obs_keys]
+        if self.obs_norm is not None:  # s and s' share each key's statistics
+            both = self.obs_norm([torch.cat((a, b)) for a, b in zip(obs, next_obs)], batch_dims=td.batch_dims)
+            n = td.batch_size[0]
+            obs, next_obs = [x[:n] for x in both], [x[n:] for x in both]
+        for bonus_key, o, o_next in zip(self.bonus.in_keys, obs, next_obs):
+            out.set(bonus_key, o)
+            out.set(("next", *_tuple(bonus_key)), o_next)
         out.set("action", self._get(td, self.action_key))
         return out
 
@@ -215,21 +277,48 @@ class IntrinsicRewardTransform(Transform):
             with torch.no_grad():
                 r_in = self.bonus.bonus(inputs)
             update_stats = {}
-        r_in = r_in.detach()
-        if tuple(r_in.shape) != lead:
-            raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(r_in.shape)}, expected {lead}")
-        r_in = r_in.reshape(*lead, *([1] * (r_ext.dim() - len(lead)))).expand_as(r_ext).to(r_ext.dtype)
+        raw = r_in.detach()
+        if tuple(raw.shape) != lead:
+            raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(raw.shape)}, expected {lead}")
+        r_in = raw if self.reward_norm is None else self.reward_norm(raw)
+        self.bonus_stats.update(r_in)
+        shape = (*lead, *([1] * (r_ext.dim() - len(lead))))
+        bonus = beta * r_in
+        terminal = None
+        if self.terminal_value_gamma is not None:
+            g = self.terminal_value_gamma
+            steps = tensordict.get(self.steps_key, None)
+            steps = torch.ones(lead, dtype=r_in.dtype, device=r_in.device) if steps is None else steps.reshape(lead)
+            ended = self._get(tensordict, self.terminated_key).reshape(lead)
+            terminal = ended.to(r_in.dtype) * (beta * float(self.bonus_stats.mean) / (1.0 - g)) * g ** steps.to(r_in.dtype)
+            bonus = bonus + terminal
+        r_in_out = r_in.reshape(shape).expand_as(r_ext).to(r_ext.dtype)
         # beta == 0: exactly r_ext (0 * r_in could turn -0.0 into +0.0, or inf into nan)
-        total = r_ext.clone() if beta == 0.0 else r_ext + beta * r_in
+        total = r_ext.clone() if beta == 0.0 else r_ext + bonus.reshape(shape).expand_as(r_ext).to(r_ext.dtype)
         # ``set`` replaces entries of the sampled copy; nothing is written in place
         tensordict.set(self.reward_ext_key, r_ext)
-        tensordict.set(self.reward_int_key, r_in.contiguous())
+        tensordict.set(self.reward_int_key, r_in_out.contiguous())
         tensordict.set(self.reward_key, total)
-        stats = {"beta": beta, "reward_int_mean": float(r_in.mean()), "reward_int_max": float(r_in.max()),
-                 "reward_int_min": float(r_in.min())}
-        stats.update(update_stats)
-        self.last_stats = stats
+        self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
         return tensordict
+
+    @staticmethod
+    def _stats(beta: float, raw: Tensor, r_in: Tensor, bonus: Tensor, r_ext: Tensor, terminal: Tensor | None
+               ) -> dict[str, float]:
+        """Diagnostics of one batch: ``r_in`` before (``raw``) and after normalisation, ``beta * r_in``
+        (``scaled``, with the terminal value), and the share of the bonus in the total reward's size."""
+        ext = r_ext.detach().abs().sum().double()
+        added = bonus.detach().abs().sum().double()
+        stats = {"beta": beta,
+                 "reward_int_mean": float(r_in.mean()), "reward_int_std": float(r_in.std(correction=0)),
+                 "reward_int_max": float(r_in.max()), "reward_int_min": float(r_in.min()),
+                 "reward_int_raw_mean": float(raw.mean()), "reward_int_raw_std": float(raw.std(correction=0)),
+                 "reward_int_raw_max": float(raw.max()),
+                 "reward_int_scaled_mean": float(bonus.mean()), "reward_int_scaled_max": float(bonus.max()),
+                 "reward_int_share": float(added / (ext + added)) if float(ext + added) > 0 else 0.0}
+        if terminal is not None:
+            stats["reward_int_terminal_mean"] = float(terminal.mean())
+        return stats
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict

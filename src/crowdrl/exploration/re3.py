@@ -34,37 +34,9 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from crowdrl.exploration.intrinsic import IntrinsicBonus, feature_dim_of, seeded_init
+from crowdrl.exploration.normalize import RunningStd
 
 EMBED_DIM = 128
-
-
-class RunningStd(nn.Module):
-    """Running mean/variance of a scalar stream (pooled batch moments, exact for the union)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("m2", torch.zeros((), dtype=torch.float64))
-
-    @torch.no_grad()
-    def update(self, x: Tensor) -> None:
-        x = x.detach().reshape(-1).to(self.mean.dtype)
-        n = x.numel()
-        if n == 0:
-            return
-        batch_mean = x.mean()
-        batch_m2 = (x - batch_mean).pow(2).sum()
-        total = self.count + n
-        delta = batch_mean - self.mean
-        self.mean.add_(delta * (n / total))
-        self.m2.add_(batch_m2 + delta.pow(2) * (self.count * n / total))
-        self.count.copy_(total)
-
-    @property
-    def std(self) -> Tensor:
-        """Population standard deviation (0 before any data)."""
-        return (self.m2 / self.count.clamp_min(1.0)).sqrt()
 
 
 class RE3(IntrinsicBonus):

@@ -66,9 +66,23 @@ class ExplorationConfig:
     dropout_start: float = 0.5  # dropout: p decays linearly start -> end over anneal_frames
     dropout_end: float = 0.01
     beta: float = 0.01  # icm/re3: r = r_ext + β r_in
-    beta_end: float | None = None  # icm/re3: None = constant β, else linear β -> beta_end over anneal_frames
+    beta_end: float | None = None  # icm/re3, linear schedule: β -> beta_end over anneal_frames
+    # icm/re3: constant | linear (needs beta_end) | exp (needs beta_decay: β (1 - beta_decay)^frames);
+    # null: linear when beta_end is given, else constant
+    beta_schedule: str | None = None
+    beta_decay: float | None = None
     icm_lr: float = 1e-4
     re3_k: int = 3
+    # icm/re3, stable-bonus options of IntrinsicRewardTransform (docs/mdp.md, "Intrinsic-reward options");
+    # the defaults are the method as published (and as run before these keys existed)
+    reward_norm: str = "none"  # none | std: r_in divided by its running std | batch: standardised over the sampled batch
+    reward_center: bool = False  # r_in minus its mean (running, or the batch's with reward_norm=batch): no net per-step bonus
+    reward_clip: float | None = None  # clip the normalised r_in to [-c, c]
+    obs_norm: bool = False  # the bonus's input observations whitened by running mean/std, clipped to ±obs_clip
+    obs_clip: float = 5.0
+    terminal_value: bool = False  # terminal transitions get β γ^m mean(r_in) / (1 - γ): ending never forgoes the bonus
+    icm_feature_norm: str = "none"  # none | layernorm: ICM's φ ends with a LayerNorm without gain (fixed scale)
+    icm_detach_target: bool = True  # false: the forward loss's gradient reaches φ(s') too (Pathak et al.'s code)
 
 
 @dataclass
@@ -208,6 +222,7 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
         _check(0 <= getattr(x, key) < 1, f"exploration.{key}", f"must lie in [0, 1), got {getattr(x, key)}")
     _check(x.beta >= 0, "exploration.beta", f"must be >= 0, got {x.beta}")
     _check(x.beta_end is None or x.beta_end >= 0, "exploration.beta_end", f"must be >= 0 or null, got {x.beta_end}")
+    _check_intrinsic_options(x)
     _check(x.icm_lr > 0, "exploration.icm_lr", f"must be > 0, got {x.icm_lr}")
     _check(x.re3_k >= 1, "exploration.re3_k", f"must be >= 1, got {x.re3_k}")
     _check(x.name != "re3" or x.re3_k < run.train.batch_size, "exploration.re3_k",
@@ -224,6 +239,8 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(t.batch_size <= t.buffer_size, "train.batch_size",
            f"({t.batch_size}) must not exceed train.buffer_size ({t.buffer_size})")
     _check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")
+    _check(not x.terminal_value or t.gamma < 1, "exploration.terminal_value",
+           f"values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, got {t.gamma}")
     _check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
     _check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
     p = run.planning
@@ -238,6 +255,46 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
            f"({t.warmup_frames}): with this budget not a single update could run")
     check_device(run.device)
     return run
+
+
+INTRINSIC_OPTIONS = ("beta_schedule", "beta_decay", "reward_norm", "reward_center", "reward_clip", "obs_norm",
+                     "obs_clip", "terminal_value", "icm_feature_norm", "icm_detach_target")
+
+
+def beta_schedule_of(x: ExplorationConfig) -> str:
+    """The β schedule in force: ``beta_schedule``, or for ``null`` linear with a ``beta_end``, else constant."""
+    if x.beta_schedule is not None:
+        return x.beta_schedule
+    return "constant" if x.beta_end is None else "linear"
+
+
+def _check_intrinsic_options(x: ExplorationConfig) -> None:
+    from crowdrl.exploration.icm import FEATURE_NORMS
+    from crowdrl.exploration.normalize import REWARD_SCALES
+    from crowdrl.exploration.schedule import SCHEDULES
+
+    if x.name not in INTRINSIC:
+        defaults = ExplorationConfig()
+        for key in INTRINSIC_OPTIONS:
+            _check(getattr(x, key) == getattr(defaults, key), f"exploration.{key}",
+                   f"applies to the intrinsic variants ({', '.join(INTRINSIC)}) only; exploration.name is {x.name!r}")
+    _check(x.beta_schedule is None or x.beta_schedule in SCHEDULES, "exploration.beta_schedule",
+           f"got {x.beta_schedule!r}; allowed: {', '.join(SCHEDULES)} or null")
+    schedule = beta_schedule_of(x)
+    _check(schedule != "linear" or x.beta_end is not None, "exploration.beta_end",
+           "beta_schedule=linear needs exploration.beta_end (the value reached after exploration.anneal_frames)")
+    _check(schedule == "linear" or x.beta_end is None, "exploration.beta_end",
+           f"is set ({x.beta_end}) but beta_schedule={schedule} does not use it; use beta_schedule=linear or beta_end=null")
+    _check(schedule != "exp" or x.beta_decay is not None, "exploration.beta_decay",
+           "beta_schedule=exp needs exploration.beta_decay (β_t = β (1 - beta_decay)^frames)")
+    _check(schedule == "exp" or x.beta_decay is None, "exploration.beta_decay",
+           f"is set ({x.beta_decay}) but beta_schedule={schedule} does not use it; use beta_schedule=exp or beta_decay=null")
+    _check(x.beta_decay is None or 0 <= x.beta_decay < 1, "exploration.beta_decay",
+           f"must lie in [0, 1), got {x.beta_decay}")
+    _one_of(x.reward_norm, "exploration.reward_norm", REWARD_SCALES)
+    _check(x.reward_clip is None or x.reward_clip > 0, "exploration.reward_clip", f"must be > 0 or null, got {x.reward_clip}")
+    _check(x.obs_clip > 0, "exploration.obs_clip", f"must be > 0, got {x.obs_clip}")
+    _one_of(x.icm_feature_norm, "exploration.icm_feature_norm", FEATURE_NORMS)
 
 
 def crowd_range(env: EnvConfig) -> tuple[int, int]:

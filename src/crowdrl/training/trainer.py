@@ -24,6 +24,7 @@ from tensordict import TensorDictBase
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
+from crowdrl.exploration.schedule import linear_schedule
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
                                          save_checkpoint)
@@ -33,11 +34,6 @@ from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_
 from crowdrl.training.predictor_loss import PredictorLoss
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
-
-
-def linear_schedule(start: float, end: float, duration: int, t: int) -> float:
-    """``start`` → ``end`` linearly over ``duration`` steps, then ``end``."""
-    return end + (start - end) * max(0.0, 1.0 - t / duration)
 
 
 class NonFiniteError(FloatingPointError):
@@ -99,7 +95,8 @@ class Trainer:
         self._stop_requested = False
         self.predictor_loss = math.nan  # mean predictor loss of the last batch's updates (NaN: none)
         self._predictor_loss_sum = 0.0
-        self._pending_episodes: list[tuple[int, float, int]] = []  # finished, not yet logged (logged by 20)
+        # (event, return, steps, goal distance) of finished episodes not yet logged (logged by 20)
+        self._pending_episodes: list[tuple[int, float, int, float]] = []
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -115,6 +112,8 @@ class Trainer:
             "env": self.env.base_env.snapshot() if self.env.base_env.state is not None else None,
             "pending_episodes": list(self._pending_episodes),
             "intrinsic_stats": dict(self.intrinsic.last_stats) if self.intrinsic is not None else None,
+            # the running statistics of the bonus's normalisers (obs, reward, terminal value)
+            "intrinsic_norm": self.intrinsic.stats_state_dict() if self.intrinsic is not None else None,
         }
         if self.bonus is not None:
             payload["bonus"] = self.bonus.state_dict()
@@ -132,9 +131,12 @@ class Trainer:
         self.optimizer.load_state_dict(data["optimizer"])
         self.counters = Counters(**data["counters"])
         self._set_rng(data)
-        self._pending_episodes = [tuple(e) for e in data.get("pending_episodes", [])]
+        # (event, return, steps, goal distance at the end); older checkpoints kept no goal distance
+        self._pending_episodes = [(*e, math.nan)[:4] for e in data.get("pending_episodes", [])]
         if self.intrinsic is not None and data.get("intrinsic_stats") is not None:
             self.intrinsic.last_stats = dict(data["intrinsic_stats"])
+        if self.intrinsic is not None and data.get("intrinsic_norm") is not None:  # absent in older checkpoints
+            self.intrinsic.load_stats_state_dict(data["intrinsic_norm"])
         if data.get("env") is not None:
             try:
                 self.env.base_env.restore(data["env"])
@@ -211,7 +213,7 @@ class Trainer:
             self._set_rng(resume_data)
         bar = _progress(run.logger.progress_bar, t.total_frames, c.frames)
         timers = {"collect": 0.0, "update": 0.0, "validate": 0.0}
-        recent = self._pending_episodes  # (event, return, steps) of finished episodes not yet logged
+        recent = self._pending_episodes  # (event, return, steps, goal distance) of finished episodes not yet logged
         try:
             tick = time.perf_counter()
             for batch in collector:
@@ -338,17 +340,21 @@ class Trainer:
         self.emit(row)
         return metrics
 
-    def _log_train(self, episodes: list[tuple[int, float, int]], loss_value: float, timers: dict) -> None:
+    def _log_train(self, episodes: list[tuple[int, float, int, float]], loss_value: float, timers: dict) -> None:
         c = self.counters
         n = len(episodes)
-        events = [e for e, _, _ in episodes]
-        succ_steps = [s for e, _, s in episodes if e == SUCCESS]
+        events = [e for e, *_ in episodes]
+        succ_steps = [s for e, _, s, _ in episodes if e == SUCCESS]
+        timeout_dist = [d for e, _, _, d in episodes if e == TIMEOUT]
         self.emit({
             "kind": "train", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
             "train/success_rate": events.count(SUCCESS) / n,
             "train/collision_rate": events.count(COLLISION) / n,
             "train/timeout_rate": events.count(TIMEOUT) / n,
-            "train/return": sum(r for _, r, _ in episodes) / n,
+            "train/return": sum(r for _, r, _, _ in episodes) / n,
+            "train/episode_length": sum(s for _, _, s, _ in episodes) / n,
+            # how far from its goal a timed-out robot stopped: hovering near it, or gone far away
+            "train/timeout_goal_distance": sum(timeout_dist) / len(timeout_dist) if timeout_dist else math.nan,
             "train/navigation_time": (sum(succ_steps) / len(succ_steps) * self.crowd_cfg.time_step) if succ_steps else math.nan,
             "train/epsilon": float(self.egreedy.eps),
             "train/loss": loss_value,
@@ -376,7 +382,8 @@ class Trainer:
             self.wandb = None
 
 
-def _finished_episodes(batch: TensorDictBase) -> list[tuple[int, float, int]]:
+def _finished_episodes(batch: TensorDictBase) -> list[tuple[int, float, int, float]]:
+    """``(event, return, steps, distance to the goal at the end)`` of the episodes that ended in ``batch``."""
     nxt = batch.get("next")
     done = nxt.get("done").reshape(-1)
     if not bool(done.any()):
@@ -384,7 +391,10 @@ def _finished_episodes(batch: TensorDictBase) -> list[tuple[int, float, int]]:
     events = nxt.get("event").reshape(-1)[done].tolist()
     returns = nxt.get("episode_reward").reshape(-1)[done].tolist()
     steps = nxt.get("step_count").reshape(-1)[done].tolist()
-    return list(zip(events, returns, steps))
+    robot = nxt.get("robot")  # world frame: px, py, vx, vy, radius, gx, gy, ...
+    robot = robot.reshape(-1, robot.shape[-1])[done]
+    dist = (robot[:, 5:7] - robot[:, 0:2]).norm(dim=-1).tolist()
+    return list(zip(events, returns, steps, dist))
 
 
 def _progress(enabled: bool, total: int, initial: int):

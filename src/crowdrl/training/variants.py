@@ -18,12 +18,14 @@ from __future__ import annotations
 from typing import Callable
 
 from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform
+from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer
+from crowdrl.exploration.schedule import make_schedule
 from crowdrl.exploration.dropout import add_action_dropout
 from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.exploration.noisy import noisify_head
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
-from crowdrl.training.config import INTRINSIC, RunConfig
+from crowdrl.training.config import INTRINSIC, RunConfig, beta_schedule_of
 
 ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
 
@@ -52,21 +54,25 @@ def make_bonus(run: RunConfig, obs_keys: list[str], num_actions: int = 81) -> In
     with seeded_init(seed):
         encoder = make_encoder(run.encoder.name)
     if x.name == "icm":
-        return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, seed=seed + 1)
+        return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, detach_target=x.icm_detach_target,
+                   feature_norm=x.icm_feature_norm, seed=seed + 1)
     return RE3(encoder, obs_keys, k=x.re3_k, seed=seed + 1)
 
 
 def make_intrinsic_transform(run: RunConfig, bonus: IntrinsicBonus, obs_keys: list[str],
                              frames: Callable[[], int]) -> IntrinsicRewardTransform:
-    """The sample-time reward transform; ``frames()`` gives the frame count for a decaying β."""
+    """The sample-time reward transform with the run's β schedule and stable-bonus options;
+    ``frames()`` gives the frame count a scheduled β reads."""
     x = run.exploration
-    if x.beta_end is None:
-        beta: float | Callable[[], float] = x.beta
-    else:
-        def beta() -> float:
-            return x.beta_end + (x.beta - x.beta_end) * max(0.0, 1.0 - frames() / x.anneal_frames)
+    beta = make_schedule(beta_schedule_of(x), x.beta, end=x.beta_end, duration=x.anneal_frames, decay=x.beta_decay,
+                         clock=frames)
     next_keys = [("next", k) for k in obs_keys] if run.train.n_step == 1 else [(ONE_STEP_KEY, k) for k in obs_keys]
-    return IntrinsicRewardTransform(bonus, beta, obs_keys=obs_keys, next_obs_keys=next_keys)
+    reward_norm = RewardNormalizer(x.reward_norm, center=x.reward_center, clip=x.reward_clip)
+    return IntrinsicRewardTransform(
+        bonus, beta, obs_keys=obs_keys, next_obs_keys=next_keys,
+        obs_norm=ObservationNormalizer(clip=x.obs_clip) if x.obs_norm else None,
+        reward_norm=None if reward_norm.is_identity else reward_norm,
+        terminal_value_gamma=run.train.gamma if x.terminal_value else None)
 
 
 def uses_one_step_successor(run: RunConfig) -> bool:

@@ -1,0 +1,31 @@
+#!/bin/bash
+# Issue 26's arms of the intrinsic-reward study at the demo budget (planning on, as results/demo-planning),
+# run one after another: `bash results/intrinsic/chain.sh ARM:SEED [ARM:SEED ...]`. A killed run resumes
+# from its last checkpoint when rerun; finished runs are skipped. Arms are compared on validation
+# (experiments/compare_runs.py --split val); the 1000 circle test cases each run ends with are for the table.
+cd "$(dirname "$0")/../.."
+export WANDB_MODE=offline
+STABLE="exploration.reward_norm=batch exploration.reward_center=true exploration.reward_clip=5 exploration.obs_norm=true"
+DECAY="exploration.beta_schedule=exp exploration.beta_decay=1e-5"
+arm() {
+  case $1 in
+    icm-stable) echo "exploration=icm $STABLE exploration.icm_feature_norm=layernorm $DECAY" ;;
+    re3-stable) echo "exploration=re3 $STABLE $DECAY" ;;
+    greedy)     echo "exploration=re3 exploration.beta=0" ;;  # the control: ε = 0, planning, no bonus
+    *) echo "unknown arm $1" >&2; exit 2 ;;
+  esac
+}
+for item in "$@"; do
+  A=${item%%:*}; S=${item##*:}
+  D=results/intrinsic/runs/$A-s$S
+  LOG=results/intrinsic/logs/$A-s$S.log
+  mkdir -p results/intrinsic/logs
+  OVR=$(arm "$A") || exit 2
+  if [ -f $D/summary.json ]; then continue; fi
+  if [ -f $D/checkpoints/last.pt ]; then
+    .venv/bin/python experiments/train.py resume=$D logger.progress_bar=false >> $LOG 2>&1
+  else
+    .venv/bin/python experiments/train.py preset=demo seed=$S $OVR logger=csv logger.progress_bar=false \
+      logger.render=false hydra.run.dir=$D >> $LOG 2>&1
+  fi
+done
