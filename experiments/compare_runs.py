@@ -6,6 +6,11 @@ Per scenario and group: the mean over seeds of success, collision, navigation ti
 with a 95 % stratified-bootstrap interval (rliable), and each group's probability of improving on
 the first group's success rate. Writes ``table.md`` and ``table.json`` under ``--out``.
 
+``--split val`` compares on the validation episodes the runs logged while training (their
+``scalars.jsonl``), never on test cases: what settings are chosen by. Per run: the success,
+collision and timeout rates over its last ``--last`` validations (the end of training, 100 episodes
+each: a run that falls back late scores low), and its best validation success.
+
     python experiments/compare_runs.py --out results/planning \\
         --group "ε-greedy=results/demo/runs/egreedy-s0,results/demo/runs/egreedy-s1,results/demo/runs/egreedy-s2" \\
         --group "ε-greedy + planning=results/planning/runs/plan-s0,results/planning/runs/plan-s1,results/planning/runs/plan-s2"
@@ -27,6 +32,24 @@ from crowdrl.files import atomic_write_bytes
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
+VAL_METRICS = (("success_rate", "success (last val.)", 3), ("collision_rate", "collision (last val.)", 3),
+               ("timeout_rate", "timeout (last val.)", 3), ("best_success_rate", "best val. success", 3))
+VAL_SCENARIO = "validation"
+
+
+def val_record(run: Path, last: int) -> dict:
+    """A run's validation results: rates over its last ``last`` validations, its best success."""
+    rows = [json.loads(line) for line in (run / "scalars.jsonl").read_text().splitlines() if line.strip()]
+    vals = [r for r in rows if r.get("kind") == "val"]
+    if len(vals) < last:
+        raise SystemExit(f"--split val: {run} logged {len(vals)} validations, fewer than --last {last}")
+    tail = vals[-last:]
+    out = {f"{k}": float(np.mean([r[f"val/{k}"] for r in tail])) for k in ("success_rate", "collision_rate",
+                                                                           "timeout_rate")}
+    out["best_success_rate"] = max(r["val/success_rate"] for r in vals)
+    out["episodes"] = int(sum(r["val/episodes"] for r in tail))
+    out["frames"] = [tail[0]["frames"], tail[-1]["frames"]]
+    return out
 
 
 def parse_group(text: str, scenarios: list[str]) -> tuple[str, list[Path]]:
@@ -36,21 +59,29 @@ def parse_group(text: str, scenarios: list[str]) -> tuple[str, list[Path]]:
     except ValueError as exc:
         raise SystemExit(f"--group: {exc}") from None
     for run in runs:
+        if scenarios == [VAL_SCENARIO]:
+            if not (run / "scalars.jsonl").exists():
+                raise SystemExit(f"--group {label!r}: {run} has no scalars.jsonl")
+            continue
         for scenario in scenarios:
             if not (run / f"eval-{scenario}" / "eval.json").exists():
                 raise SystemExit(f"--group {label!r}: {run} has no eval-{scenario}/eval.json")
     return label, runs
 
 
-def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int) -> list[dict]:
+def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int, last: int = 5) -> list[dict]:
     rows = []
+    metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
     for scenario in scenarios:
-        records = {label: [json.loads((r / f"eval-{scenario}" / "eval.json").read_text()) for r in runs]
-                   for label, runs in groups}
+        if scenario == VAL_SCENARIO:
+            records = {label: [val_record(r, last) for r in runs] for label, runs in groups}
+        else:
+            records = {label: [json.loads((r / f"eval-{scenario}" / "eval.json").read_text()) for r in runs]
+                       for label, runs in groups}
         first = groups[0][0]
         for label, recs in records.items():
             row = {"group": label, "scenario": scenario, "seeds": len(recs), "episodes": recs[0]["episodes"]}
-            for key, _, _ in METRICS:
+            for key, _, _ in metrics:
                 values = np.array([r[key] for r in recs], dtype=np.float64)
                 mean, lo, hi = mean_interval({label: values}, reps=reps)[label]
                 row.update({key: mean, f"{key}_lo": lo, f"{key}_hi": hi, f"{key}_per_seed": values.tolist()})
@@ -63,7 +94,9 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
     return rows
 
 
-def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int) -> str:
+def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last: int = 5) -> str:
+    metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
+
     def cell(r: dict, key: str, digits: int) -> str:
         if math.isnan(r[key]):
             return "–"
@@ -72,12 +105,15 @@ def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int) -> s
 
     lines = [f"Cells: mean over seeds [95 % stratified-bootstrap CI, rliable, {reps} resamples]; "
              f"P(improve): probability that the group's success rate beats {first}'s on a random pair of seeds.", ""]
+    if scenarios == [VAL_SCENARIO]:
+        lines[-1:] = [f"Validation episodes only (the runs' scalars.jsonl): rates over each run's last {last} "
+                      f"validations ({last} x 100 episodes at the end of training), and its best validation.", ""]
     for scenario in scenarios:
-        lines += [f"## {scenario}", "", "| group | seeds | " + " | ".join(h for _, h, _ in METRICS) + " | P(improve) |",
-                  "|---|---|" + "---|" * (len(METRICS) + 1)]
+        lines += [f"## {scenario}", "", "| group | seeds | " + " | ".join(h for _, h, _ in metrics) + " | P(improve) |",
+                  "|---|---|" + "---|" * (len(metrics) + 1)]
         for r in (r for r in rows if r["scenario"] == scenario):
             p = f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
-            lines.append(f"| {r['group']} | {r['seeds']} | " + " | ".join(cell(r, k, d) for k, _, d in METRICS)
+            lines.append(f"| {r['group']} | {r['seeds']} | " + " | ".join(cell(r, k, d) for k, _, d in metrics)
                          + f" | {p} |")
         lines.append("")
     return "\n".join(lines)
@@ -87,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--group", action="append", required=True, help="LABEL=RUN[,RUN...]; the first is the baseline")
     p.add_argument("--scenarios", nargs="+", default=["circle", "square"], choices=["circle", "square"])
+    p.add_argument("--split", choices=["test", "val"], default="test",
+                   help="test: the eval-<scenario>/eval.json records; val: the validations logged in training")
+    p.add_argument("--last", type=int, default=5, help="--split val: validations at the end of training to average")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print the rows as JSON instead of Markdown")
@@ -95,12 +134,15 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--group: give at least two groups (the first is the baseline)")
     if args.reps < 100:
         raise SystemExit("--reps must be >= 100")
-    groups = [parse_group(g, args.scenarios) for g in args.group]
-    rows = compare(groups, args.scenarios, args.reps)
+    if args.last < 1:
+        raise SystemExit("--last must be >= 1")
+    scenarios = [VAL_SCENARIO] if args.split == "val" else args.scenarios
+    groups = [parse_group(g, scenarios) for g in args.group]
+    rows = compare(groups, scenarios, args.reps, args.last)
     args.out.mkdir(parents=True, exist_ok=True)
     result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows}
     atomic_write_bytes(args.out / "table.json", json.dumps(result, indent=1).encode())
-    text = markdown(rows, args.scenarios, groups[0][0], args.reps)
+    text = markdown(rows, scenarios, groups[0][0], args.reps, args.last)
     atomic_write_bytes(args.out / "table.md", text.encode())
     print(json.dumps(result, indent=1) if args.json else text)
     return 0

@@ -3,6 +3,8 @@
     python experiments/gym_intrinsic.py --bonus icm                  # CartPole-v1, 20k frames
     python experiments/gym_intrinsic.py --bonus re3 --env MountainCar-v0 --beta 0.1 --frames 60000
     python experiments/gym_intrinsic.py --bonus none --json
+    python experiments/gym_intrinsic.py --bonus icm --env MountainCar-v0 --beta 0.1 --frames 40000 \
+        --reward-norm batch --center --clip 5 --obs-norm --feature-norm layernorm    # the stable-bonus options
 
 Shows that ``crowdrl.exploration`` is reusable outside crowds: the only crowdrl import is
 ``crowdrl.exploration``; everything else is TorchRL (``GymEnv``, ``Collector``,
@@ -43,6 +45,7 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform
+from crowdrl.exploration.normalize import REWARD_SCALES, ObservationNormalizer, RewardNormalizer
 
 STORED_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                ("next", "terminated"))
@@ -62,7 +65,8 @@ def make_env(name: str, seed: int) -> TransformedEnv:
     return env
 
 
-def make_bonus(kind: str, obs_dim: int, num_actions: int, seed: int) -> IntrinsicBonus | None:
+def make_bonus(kind: str, obs_dim: int, num_actions: int, seed: int, feature_norm: str = "none"
+               ) -> IntrinsicBonus | None:
     """ICM or RE3 with a small MLP feature encoder of its own (``None`` for ``--bonus none``)."""
     if kind == "none":
         return None
@@ -70,7 +74,7 @@ def make_bonus(kind: str, obs_dim: int, num_actions: int, seed: int) -> Intrinsi
         torch.manual_seed(seed + 1)
         encoder = nn.Sequential(nn.Linear(obs_dim, 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU())
     if kind == "icm":
-        return ICM(encoder, num_actions, feature_dim=64, seed=seed + 2)
+        return ICM(encoder, num_actions, feature_dim=64, feature_norm=feature_norm, seed=seed + 2)
     if kind == "re3":
         return RE3(encoder, feature_dim=64, k=3, seed=seed + 2)
     raise ValueError(f"unknown bonus {kind!r}; allowed: icm, re3, none")
@@ -92,6 +96,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--gamma", type=float, default=0.99)
     p.add_argument("--target-update", type=int, default=250, help="updates between target-network copies")
+    p.add_argument("--reward-norm", choices=REWARD_SCALES, default="none", help="r_in normalisation (default none)")
+    p.add_argument("--center", action="store_true", help="subtract r_in's mean (a zero-mean bonus)")
+    p.add_argument("--clip", type=float, default=None, help="clip the normalised r_in to [-clip, clip]")
+    p.add_argument("--obs-norm", action="store_true", help="whiten the bonus's input observations (clipped to ±5)")
+    p.add_argument("--terminal-value", action="store_true",
+                   help="terminal transitions get the bonus forgone by ending the episode (needs --gamma < 1)")
+    p.add_argument("--feature-norm", choices=("none", "layernorm"), default="none", help="ICM's feature norm")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     args = p.parse_args(argv)
@@ -99,6 +110,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         p.error("--beta must be >= 0")
     if min(args.frames, args.frames_per_batch, args.batch_size, args.target_update) < 1:
         p.error("--frames, --frames-per-batch, --batch-size and --target-update must be >= 1")
+    if args.clip is not None and not args.clip > 0:
+        p.error("--clip must be > 0")
+    if args.terminal_value and not 0 < args.gamma < 1:
+        p.error("--terminal-value needs --gamma in (0, 1)")
     return args
 
 
@@ -124,14 +139,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     target_updater = HardUpdate(loss, value_network_update_interval=args.target_update)
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr)
 
-    bonus = make_bonus(args.bonus, obs_dim, num_actions, args.seed)
-    intrinsic = None if bonus is None else IntrinsicRewardTransform(bonus, beta=args.beta)
+    bonus = make_bonus(args.bonus, obs_dim, num_actions, args.seed, args.feature_norm)
+    reward_norm = RewardNormalizer(args.reward_norm, center=args.center, clip=args.clip)
+    intrinsic = None if bonus is None else IntrinsicRewardTransform(
+        bonus, beta=args.beta, obs_norm=ObservationNormalizer() if args.obs_norm else None,
+        reward_norm=None if reward_norm.is_identity else reward_norm,
+        terminal_value_gamma=args.gamma if args.terminal_value else None)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.buffer_size), batch_size=args.batch_size,
                                     transform=intrinsic)
     collector = Collector(env, policy, frames_per_batch=args.frames_per_batch, total_frames=args.frames,
                           auto_register_policy_transforms=False)
 
     returns: list[float] = []
+    terminated: list[bool] = []  # per finished episode: ended by the env (MountainCar: the goal) before the time limit
     int_means: list[float] = []
     int_max = -math.inf
     updates, frames, last_sample = 0, 0, None
@@ -142,6 +162,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             egreedy.step(batch.numel())
             done = batch["next", "done"].squeeze(-1)
             returns.extend(batch["next", "episode_reward"][done].squeeze(-1).tolist())
+            terminated.extend(batch["next", "terminated"].squeeze(-1)[done].tolist())
             buffer.extend(batch.reshape(-1).select(*STORED_KEYS))
             if frames < args.warmup_frames or len(buffer) < args.batch_size:
                 continue
@@ -168,6 +189,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "frames": frames, "updates": updates, "episodes": len(returns), "wall_s": wall,
         "final_mean_return": sum(recent) / len(recent) if recent else math.nan,
         "best_return": max(returns) if returns else math.nan,
+        # MountainCar: an episode that terminates has reached the goal (CartPole: it has fallen)
+        "first_terminated_episode": terminated.index(True) if any(terminated) else None,
+        "terminated_episodes": sum(terminated),
+        "final_terminated_rate": sum(terminated[-20:]) / len(terminated[-20:]) if terminated else math.nan,
+        "options": {k: getattr(args, k) for k in ("reward_norm", "center", "clip", "obs_norm", "terminal_value",
+                                                   "feature_norm")},
         "intrinsic": None if intrinsic is None else {
             "mean": sum(int_means) / len(int_means) if int_means else math.nan,
             "max": int_max,
@@ -204,7 +231,9 @@ def _report(summary: dict[str, Any]) -> str:
              f"{summary['frames']} frames, {summary['updates']} updates, {summary['episodes']} episodes, "
              f"{summary['wall_s']:.1f} s",
              f"final mean episode return (last 20 episodes, extrinsic): {summary['final_mean_return']:.1f}; "
-             f"best {summary['best_return']:.1f}"]
+             f"best {summary['best_return']:.1f}",
+             f"episodes ended by the env before the time limit: {summary['terminated_episodes']} (first: episode "
+             f"{summary['first_terminated_episode']}; last 20: {summary['final_terminated_rate']:.2f})"]
     stats = summary["intrinsic"]
     if stats is not None:
         lines.append(f"intrinsic reward over sampled batches: mean {stats['mean']:.4g}, max {stats['max']:.4g}; "

@@ -58,6 +58,20 @@ def test_beta_zero_reproduces_the_extrinsic_only_run():
     assert zero["last_batch"]["reward"] == plain["last_batch"]["reward"]
 
 
+@pytest.mark.parametrize("bonus", ["icm", "re3"])
+def test_the_stable_bonus_options_work_on_a_plain_gymnasium_env(bonus):
+    out = _run("--bonus", bonus, "--beta", "0.5", "--reward-norm", "batch", "--center", "--clip", "2", "--obs-norm",
+               "--terminal-value", *(("--feature-norm", "layernorm") if bonus == "icm" else ()))
+    last = out["intrinsic"]["last"]
+    # centred, then clipped to ±2 (the clip may move the mean a little off 0)
+    assert abs(last["reward_int_mean"]) < 0.05 and last["reward_int_max"] <= 2.0 and last["reward_int_min"] >= -2.0
+    assert last["reward_int_raw_mean"] > 0 and 0 < last["reward_int_share"] < 1
+    assert "reward_int_terminal_mean" in last  # CartPole's falls are terminal transitions
+    if bonus == "icm":
+        assert last["icm_feature_norm"] == pytest.approx(128 ** 0.5, rel=1e-2)  # LayerNorm's eps: a hair under
+    assert out["options"]["reward_norm"] == "batch" and out["options"]["obs_norm"]
+
+
 def _crowdrl_imports(path: Path) -> set[str]:
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -71,7 +85,7 @@ def _crowdrl_imports(path: Path) -> set[str]:
 def test_intrinsic_modules_and_example_import_only_crowdrl_exploration():
     # every exploration module, the noisy and dropout heads included, must stay free of crowd code
     package = ROOT / "src" / "crowdrl" / "exploration"
-    names = ("__init__", "intrinsic", "icm", "re3", "noisy", "dropout", "_surgery")
+    names = ("__init__", "intrinsic", "icm", "re3", "noisy", "dropout", "_surgery", "normalize", "schedule")
     files = [EXAMPLE, *(package / f"{name}.py" for name in names)]
     for path in files:
         assert all(n.startswith("crowdrl.exploration") for n in _crowdrl_imports(path)), path

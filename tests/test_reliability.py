@@ -233,9 +233,16 @@ EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "pre
          "env": {"num_humans": 4}}
 
 
+# every stable-bonus option that keeps running state (observation and reward statistics, the terminal
+# value's mean) or reads the frame count (the exp β schedule)
+BONUS_OPTIONS = {"reward_norm": "std", "reward_center": True, "reward_clip": 3.0, "obs_norm": True,
+                 "terminal_value": True, "icm_feature_norm": "layernorm", "beta_schedule": "exp", "beta_decay": 1e-3}
+
+
 def _exact_run(name: str) -> RunConfig:
     cfg = json.loads(json.dumps(EXACT))
-    cfg["exploration"] = {"name": name, "anneal_frames": 288}
+    options = BONUS_OPTIONS if name.endswith("+options") else {}
+    cfg["exploration"] = {"name": name.removesuffix("+options"), "anneal_frames": 288, **options}
     return validate(cfg)
 
 
@@ -248,10 +255,11 @@ def _final(run_dir: Path) -> tuple[dict, dict, list]:
     return last["loss"], json.loads((run_dir / "eval.json").read_text())["metrics"], rows
 
 
-# ICM carries the most state (its networks, its optimizer, the one-step successors); the others run in
-# make test-slow, and tests/test_training.py's slow test kills a real train.py process with SIGKILL.
-@pytest.mark.parametrize("name", ["icm", *[pytest.param(n, marks=pytest.mark.slow)
-                                           for n in ("egreedy", "noisy", "dropout", "re3")]])
+# ICM with the bonus options carries the most state (its networks, its optimizer, the one-step
+# successors, the normalisers' statistics); the others run in make test-slow, and
+# tests/test_training.py's slow test kills a real train.py process with SIGKILL.
+@pytest.mark.parametrize("name", ["icm+options", *[pytest.param(n, marks=pytest.mark.slow)
+                                                   for n in ("icm", "egreedy", "noisy", "dropout", "re3")]])
 def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, name):
     """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
     resumed by a new trainer: the same final weights (online, target, optimizer), the same test

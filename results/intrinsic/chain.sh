@@ -7,10 +7,17 @@ cd "$(dirname "$0")/../.."
 export WANDB_MODE=offline
 STABLE="exploration.reward_norm=batch exploration.reward_center=true exploration.reward_clip=5 exploration.obs_norm=true"
 DECAY="exploration.beta_schedule=exp exploration.beta_decay=1e-5"
+EPS="exploration.eps_start=0.5 exploration.eps_end=0.1"  # ε-greedy's schedule (the demo preset: over 100k frames)
 arm() {
   case $1 in
     icm-stable) echo "exploration=icm $STABLE exploration.icm_feature_norm=layernorm $DECAY" ;;
     re3-stable) echo "exploration=re3 $STABLE $DECAY" ;;
+    icm-stable-eps) echo "exploration=icm $STABLE exploration.icm_feature_norm=layernorm $DECAY $EPS" ;;
+    re3-stable-eps) echo "exploration=re3 $STABLE $DECAY $EPS" ;;
+    # one lever at a time on the published RE3
+    re3-center) echo "exploration=re3 exploration.reward_norm=batch exploration.reward_center=true" ;;
+    re3-decay)  echo "exploration=re3 $DECAY" ;;
+    re3-terminal) echo "exploration=re3 exploration.terminal_value=true" ;;
     greedy)     echo "exploration=re3 exploration.beta=0" ;;  # the control: ε = 0, planning, no bonus
     *) echo "unknown arm $1" >&2; exit 2 ;;
   esac
