@@ -249,7 +249,7 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
     sample = trainer.buffer.sample()
     assert sample.get("humans_mask").shape == (16, 4) and not bool(sample.get("humans_mask").all())
     if exploration != "egreedy":
-        assert trainer.intrinsic.last_stats["reward_int_mean"] > 0  # the bonus was computed from this encoder
+        assert trainer.intrinsic.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed from this encoder
 
 
 def test_a_checkpoint_of_one_encoder_is_refused_by_another(tmp_path):

@@ -51,7 +51,7 @@ def test_every_variant_trains_validates_and_tests(tmp_path, name):
     rows = [json.loads(line) for line in (tmp_path / name / "scalars.jsonl").read_text().splitlines()]
     train_rows = [r for r in rows if r["kind"] == "train"]
     if name in ("icm", "re3"):
-        assert train_rows and all(r["train/intrinsic_reward_int_mean"] > 0 for r in train_rows)
+        assert train_rows and all(r["train/intrinsic_reward_int_raw_mean"] > 0 for r in train_rows)
     result = evaluate_best(trainer.run, tmp_path / name, render=False)  # noisy: parameters saved under own names
     assert result["metrics"]["episodes"] == 4
 
@@ -63,7 +63,7 @@ def test_beta_zero_reproduces_the_extrinsic_only_run_bit_for_bit(tmp_path, name)
     bonus, _ = _run(tmp_path / "bonus", name, eps_start=0.0, eps_end=0.0, beta=0.0)
     for a, b in zip(plain.net.state_dict().values(), bonus.net.state_dict().values()):
         assert torch.equal(a, b)
-    assert bonus.intrinsic.last_stats["reward_int_mean"] > 0  # the bonus was computed, only weighted by 0
+    assert bonus.intrinsic.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed, only weighted by 0
 
 
 def test_beta_changes_the_run(tmp_path):

@@ -250,3 +250,36 @@ def test_an_old_run_config_without_the_new_keys_builds_the_published_transform()
     t = make_intrinsic_transform(old_linear, make_bonus(old_linear, ["robot_rc", "humans_rc"]),
                                  ["robot_rc", "humans_rc"], lambda: 50)
     assert t.current_beta() == pytest.approx(0.01)  # beta_end alone still means a linear decay
+
+
+def _composed_exploration(group: str):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+
+    from crowdrl.training.config import RunConfig, register_resolvers
+
+    register_resolvers()
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"exploration={group}", "preset=demo", "logger=csv"])
+    return validate(cfg).exploration
+
+
+def test_the_config_groups_hold_the_chosen_defaults_and_the_published_arms():
+    from dataclasses import asdict
+
+    from crowdrl.training.config import INTRINSIC_OPTIONS, ExplorationConfig
+
+    published = ExplorationConfig()
+    for name in ("icm", "re3"):
+        chosen, paper = _composed_exploration(name), _composed_exploration(f"{name}_published")
+        assert chosen.name == paper.name == name
+        assert (chosen.reward_norm, chosen.reward_center, chosen.reward_clip, chosen.obs_norm) == ("batch", True, 5.0, True)
+        assert (chosen.beta_schedule, chosen.beta_decay, chosen.beta) == ("exp", 1e-5, 0.01)
+        assert chosen.icm_feature_norm == ("layernorm" if name == "icm" else "none")
+        # the published arm is the schema's default: what run folders written before the options rebuild
+        assert {k: asdict(paper)[k] for k in INTRINSIC_OPTIONS} == {k: asdict(published)[k] for k in INTRINSIC_OPTIONS}
+        assert paper.beta == 0.01 and paper.beta_end is None
