@@ -14,10 +14,10 @@ arm() {
     re3-stable) echo "exploration=re3 $STABLE $DECAY" ;;
     icm-stable-eps) echo "exploration=icm $STABLE exploration.icm_feature_norm=layernorm $DECAY $EPS" ;;
     re3-stable-eps) echo "exploration=re3 $STABLE $DECAY $EPS" ;;
-    # one lever at a time on the published RE3
-    re3-center) echo "exploration=re3 exploration.reward_norm=batch exploration.reward_center=true" ;;
-    re3-decay)  echo "exploration=re3 $DECAY" ;;
-    re3-terminal) echo "exploration=re3 exploration.terminal_value=true" ;;
+    # one lever at a time on the published RE3 (exploration=re3_published)
+    re3-center) echo "exploration=re3_published exploration.reward_norm=batch exploration.reward_center=true" ;;
+    re3-decay)  echo "exploration=re3_published $DECAY" ;;
+    re3-terminal) echo "exploration=re3_published exploration.terminal_value=true" ;;
     greedy)     echo "exploration=re3 exploration.beta=0" ;;  # the control: ε = 0, planning, no bonus
     *) echo "unknown arm $1" >&2; exit 2 ;;
   esac
