@@ -242,3 +242,29 @@ def test_compare_runs_agrees_with_the_reproduce_table(reproduced, tmp_path):
     assert "p_improve" not in ours[("egreedy", "circle")] and (tmp_path / "table.md").exists()
     bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}"])
     assert bad.returncode != 0 and "has no eval-circle/eval.json" in bad.stderr
+
+
+@pytest.mark.parametrize("exploration, anneal", [("egreedy", 200_000), ("re3", 200_000)])
+def test_episodes_budget_is_the_papers_episodes_at_the_demos_update_ratio(exploration, anneal):
+    """`budget=episodes` (conf/preset/episodes.yaml): the paper's ~10k episodes (500k frames), the
+    demo's updates per frame and collection, the paper's target/validation period and schedules."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from crowdrl.training.config import RunConfig
+
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reproduce_script", ROOT / "experiments" / "reproduce.py")
+    script = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = script  # its dataclasses look their module up
+    spec.loader.exec_module(script)
+    assert "episodes" in script.BUDGETS
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        demo = compose(config_name="config", overrides=["preset=demo", f"exploration={exploration}"])
+        cfg = compose(config_name="config", overrides=["preset=episodes", f"exploration={exploration}"])
+    assert cfg.preset == "episodes" and cfg.train.total_frames == 500_000
+    for key in ("num_envs", "steps_per_batch", "updates_per_frame", "batch_size", "buffer_size", "test_episodes"):
+        assert cfg.train[key] == demo.train[key], key
+    assert cfg.train.target_update_frames == cfg.train.val_every_frames == 25_000
+    assert cfg.exploration.anneal_frames == anneal and demo.exploration.anneal_frames == 100_000
