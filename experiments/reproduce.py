@@ -352,7 +352,7 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
         lines += [f"Training + validation + circle test per run (`summary.json`): {min(run_minutes):.1f}–"
                   f"{max(run_minutes):.1f} min, {plan.jobs if plan.launcher == 'local' else 'SLURM'} at a time."]
     if wall_s is not None:
-        lines += [f"Wall-clock of the `reproduce.py` call that trained the last runs: {wall_s / 60:.1f} min."]
+        lines += [f"Wall-clock of the `reproduce.py` call that trained or tested the last runs: {wall_s / 60:.1f} min."]
     lines.append("")
     for scenario in plan.scenarios:
         lines += [f"## {scenario}", "",
