@@ -350,9 +350,11 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
                    for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
     if run_minutes:
         lines += [f"Training + validation + circle test per run (`summary.json`): {min(run_minutes):.1f}–"
-                  f"{max(run_minutes):.1f} min, {plan.jobs if plan.launcher == 'local' else 'SLURM'} at a time."]
+                  f"{max(run_minutes):.1f} min."]
     if wall_s is not None:
-        lines += [f"Wall-clock of the `reproduce.py` call that trained or tested the last runs: {wall_s / 60:.1f} min."]
+        how = f"jobs={plan.jobs}" if plan.launcher == "local" else "launcher=slurm"
+        lines += [f"Wall-clock of the `reproduce.py` call ({how}) that trained or tested the last runs: "
+                  f"{wall_s / 60:.1f} min."]
     lines.append("")
     for scenario in plan.scenarios:
         lines += [f"## {scenario}", "",
