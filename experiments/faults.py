@@ -49,7 +49,7 @@ def status(folder: Path) -> str:
 
 def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, at_frames: int) -> int:
     """Start a run, send ``sig`` once its last.pt holds ``at_frames`` frames or more; the frames it held."""
-    import torch
+    from crowdrl.training.checkpoint import CheckpointError, load_checkpoint
 
     proc = subprocess.Popen([*TRAIN, *args, f"hydra.run.dir={folder}"], env=ENV,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -57,8 +57,8 @@ def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, a
     deadline, frames = time.time() + 300, 0
     while time.time() < deadline and proc.poll() is None:
         try:
-            frames = torch.load(last, weights_only=False)["counters"]["frames"] if last.exists() else 0
-        except Exception:  # written atomically, but a read can race the rename
+            frames = load_checkpoint(last)["counters"]["frames"] if last.exists() else 0
+        except CheckpointError:  # written atomically, but a read can race the rename
             frames = 0
         if frames >= at_frames:
             break
@@ -72,7 +72,9 @@ def same_result(a: Path, b: Path) -> tuple[bool, bool]:
     """(final weights bit-identical, test metrics identical) of two finished run folders."""
     import torch
 
-    wa, wb = (torch.load(f / "checkpoints" / "last.pt", weights_only=False)["loss"] for f in (a, b))
+    from crowdrl.training.checkpoint import load_checkpoint
+
+    wa, wb = (load_checkpoint(f / "checkpoints" / "last.pt")["loss"] for f in (a, b))
     weights = wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
     ma, mb = (json.loads((f / "eval.json").read_text())["metrics"] for f in (a, b))
     return weights, ma == mb

@@ -270,7 +270,9 @@ def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrup
     run = _exact_run(name)
     run_training(run, tmp_path / "ref", render=False)
     train_until_killed(run, tmp_path / "run", frame=224)
-    assert torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)["counters"]["frames"] == 192
+    from crowdrl.training.checkpoint import load_checkpoint
+
+    assert load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["counters"]["frames"] == 192
     run_training(run, tmp_path / "run", render=False)
 
     ref_weights, ref_metrics, ref_rows = _final(tmp_path / "ref")

@@ -174,7 +174,7 @@ def test_evaluate_cli_rejects_truncated_and_mismatched_checkpoints(reproduced, t
     cut.write_bytes(best.read_bytes()[:1000])
     proc = run([*EVALUATE, f"checkpoint={cut}", f"hydra.run.dir={tmp_path / 'e1'}"], timeout=120)
     assert proc.returncode == 2 and "cut.pt" in proc.stderr and "truncated" in proc.stderr
-    data = torch.load(best, weights_only=False)
+    data = torch.load(best, weights_only=True)
     data["net"] = {k: v[..., :1] if v.dim() else v for k, v in data["net"].items()}  # wrong shapes
     torch.save(data, tmp_path / "shape.pt")
     proc = run([*EVALUATE, f"checkpoint={tmp_path / 'shape.pt'}", f"hydra.run.dir={tmp_path / 'e2'}"], timeout=120)

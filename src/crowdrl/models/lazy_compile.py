@@ -21,7 +21,8 @@ class LazyCompiled:
 
     Falls back to plain ``fn`` (warning once, naming ``what`` and ``hint``) if compilation
     fails, e.g. on a machine without a C++ compiler. Inside an outer compiled region it calls
-    ``fn`` directly, so the outer graph traces and fuses it instead of nesting a compilation.
+    ``fn`` directly, so the outer graph traces and fuses it instead of nesting a compilation; so
+    it does under ``torch.jit`` tracing (the ONNX export of :mod:`crowdrl.export`).
     ``enabled=False`` always runs ``fn`` eagerly. ``options`` go to inductor (``torch.compile``'s
     ``options``), e.g. ``{"cpp_wrapper": True}``.
     """
@@ -37,7 +38,7 @@ class LazyCompiled:
         self._compiled: Callable | None = None
 
     def __call__(self, *args: Any) -> Any:
-        if not self.enabled or torch.compiler.is_compiling():
+        if not self.enabled or torch.compiler.is_compiling() or torch.jit.is_tracing():
             return self.fn(*args)
         if self._compiled is None:
             self._compiled = torch.compile(self.fn, dynamic=self.dynamic, options=self.options or None)

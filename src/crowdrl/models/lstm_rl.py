@@ -35,7 +35,11 @@ def sort_far_to_near(humans: Tensor, mask: Tensor | None) -> tuple[Tensor, Tenso
     dist2 = humans[..., :2].detach().pow(2).sum(-1)  # the order only: no gradient through it
     if mask is not None:
         dist2 = dist2.masked_fill(~mask, float("inf"))
-    order = torch.argsort(dist2, dim=-1, descending=True, stable=True)
+    if torch.onnx.is_in_onnx_export():  # ONNX has no stable sort; its TopK puts the lower index first among
+        # equals, which is the stable descending order (crowdrl.export)
+        order = torch.topk(dist2, dist2.shape[-1], dim=-1, largest=True, sorted=True).indices
+    else:
+        order = torch.argsort(dist2, dim=-1, descending=True, stable=True)
     humans = torch.gather(humans, -2, order.unsqueeze(-1).expand_as(humans))
     return humans, None if mask is None else torch.gather(mask, -1, order)
 

@@ -1,9 +1,17 @@
-"""Atomic checkpoints with a config fingerprint, so a resume never mixes runs."""
+"""Atomic checkpoints with a config fingerprint, so a resume never mixes runs.
+
+A checkpoint holds tensors and plain containers only (dict, list, tuple, str, int, float, bool,
+None), and is always loaded with ``torch.load(weights_only=True)``: a file carrying any other
+pickled object (which could run code when unpickled) is refused, never executed.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import pickle
+import re
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -41,24 +49,62 @@ def config_fingerprint(config: dict) -> str:
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
+# what ``torch.load(weights_only=True)`` rebuilds without running code (exact types: a subclass such
+# as a namedtuple or an OmegaConf node pickles its class, which the safe loader refuses)
+_PLAIN = (dict, OrderedDict, list, tuple, str, int, float, bool, type(None), torch.Tensor, torch.nn.Parameter,
+          torch.Size, torch.dtype, torch.device)
+
+
+def check_plain(value: Any, where: str = "payload") -> None:
+    """Raise ``TypeError`` naming the first entry of ``value`` that is not a tensor or plain container."""
+    if type(value) not in _PLAIN:
+        raise TypeError(f"checkpoint {where} is a {type(value).__module__}.{type(value).__qualname__}; checkpoints "
+                        f"hold only tensors and plain containers (dict, list, tuple, str, int, float, bool, None), "
+                        f"the types torch.load(weights_only=True) accepts")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            check_plain(key, f"{where} key {key!r}")
+            check_plain(item, f"{where}[{key!r}]")
+    elif isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            check_plain(item, f"{where}[{i}]")
+
+
 def save_checkpoint(path: Path, payload: dict[str, Any], fingerprint: str) -> None:
-    """``torch.save`` the payload with format/fingerprint metadata, atomically."""
+    """``torch.save`` the payload with format/fingerprint metadata, atomically.
+
+    Raises ``TypeError`` naming the entry when the payload holds anything but tensors and plain
+    containers (it could not be loaded back safely)."""
     import io
 
+    check_plain(payload)
     buf = io.BytesIO()
     torch.save({"format": FORMAT_VERSION, "fingerprint": fingerprint, **payload}, buf)
     atomic_write_bytes(Path(path), buf.getvalue())
 
 
 def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any]:
-    """Load and check a checkpoint; raise :class:`CheckpointError` with the reason otherwise."""
+    """Load (``weights_only=True``: nothing in the file is executed) and check a checkpoint; raise
+    :class:`CheckpointError` naming the file and the reason otherwise: missing, truncated or corrupt,
+    holding a Python object other than tensors and plain containers (refused unread), of another
+    format, or (given ``fingerprint``) written by a run with another configuration."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=False)
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"GLOBAL ([\w.]+)", str(exc))
+        if found:  # the safe unpickler met a class or function it does not rebuild, and ran nothing
+            raise CheckpointError(
+                f"{path} was refused: it holds a pickled Python object ({found.group(1)}), not only tensors and "
+                f"plain containers, and unpickling it could run code. crowdrl never writes such a checkpoint "
+                f"(it was crafted, or made by other code); nothing in it was run") from None
+        detail = re.search(r"Unsupported [^\n.]*", str(exc))  # not torch's advice to load it unsafely
+        raise CheckpointError(f"{path} is not a readable checkpoint (truncated or corrupt?): the safe loader "
+                              f"cannot read it ({detail.group(0) if detail else 'not a torch file'})") from None
     except Exception as exc:
-        raise CheckpointError(f"{path} is not a readable checkpoint (truncated or corrupt?): {exc}") from None
+        raise CheckpointError(f"{path} is not a readable checkpoint (truncated or corrupt?): {_first_line(exc)}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT_VERSION:
         raise CheckpointError(f"{path} is not a crowdrl checkpoint of format {FORMAT_VERSION}")
     if fingerprint is not None and data.get("fingerprint") != fingerprint:
@@ -67,3 +113,8 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
             f"!= {fingerprint}); resume it with its own config (see config.yaml in its run folder)"
         )
     return data
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__

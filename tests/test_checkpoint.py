@@ -1,0 +1,118 @@
+"""Checkpoints load with ``weights_only=True``: a pickled payload is refused and never runs, the
+files this project writes (and wrote) load, a payload that could not be loaded safely is not written."""
+
+from __future__ import annotations
+
+import math
+import os
+import shlex
+from collections import OrderedDict, namedtuple
+
+import numpy as np
+import pytest
+import torch
+
+from crowdrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from crowdrl.training.config import RunConfig, to_dict
+
+
+class _Payload:
+    """Unpickling this runs a shell command that creates ``marker``."""
+
+    def __init__(self, marker) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {shlex.quote(str(self.marker))}",)
+
+
+def test_a_pickled_payload_is_refused_naming_the_file_and_runs_nothing(tmp_path):
+    control, marker = tmp_path / "control", tmp_path / "marker"
+    torch.save({"format": FORMAT_VERSION, "net": _Payload(control)}, tmp_path / "control.pt")
+    torch.load(tmp_path / "control.pt", weights_only=False)  # the unsafe load that used to be done
+    assert control.exists(), "the payload must be live for the test to mean anything"
+
+    path = tmp_path / "evil.pt"
+    torch.save({"format": FORMAT_VERSION, "fingerprint": "x", "net": {"w": torch.ones(2), "b": _Payload(marker)}}, path)
+    with pytest.raises(CheckpointError, match=r"evil\.pt was refused: it holds a pickled Python object \(posix\.system"):
+        load_checkpoint(path)
+    from crowdrl.training.pipeline import load_trained_network
+
+    with pytest.raises(CheckpointError, match=r"evil\.pt was refused"):
+        load_trained_network(path)
+    assert not marker.exists(), "the refused checkpoint ran its payload"
+
+
+def test_garbage_is_reported_as_corrupt_without_advising_an_unsafe_load(tmp_path):
+    path = tmp_path / "noise.pt"
+    path.write_bytes(np.random.default_rng(0).bytes(3000))
+    with pytest.raises(CheckpointError, match=r"noise\.pt is not a readable checkpoint \(truncated or corrupt\?\)") as err:
+        load_checkpoint(path)
+    assert "weights_only" not in str(err.value)
+
+
+def _old_layout() -> dict:
+    """A ``last.pt`` and a ``best.pt`` as the trainer has written them since format 1 (with ``torch.save``)."""
+    net = OrderedDict(w=torch.randn(3, 2), b=torch.zeros(3))
+    param = torch.nn.Parameter(torch.zeros(3))
+    adam = torch.optim.Adam([param])
+    param.grad = torch.ones(3)
+    adam.step()  # its state: int step keys, tensors
+    counters = {"frames": 192, "updates": 40, "episodes": 3, "update_credit": 0.25, "next_train_episode": 19,
+                "best_val": -math.inf, "best_frames": -1, "last_val": 96, "last_checkpoint": 192,
+                "history": [(96, 0.25), (192, 0.5)]}
+    last = {"format": 1, "fingerprint": "abc", "loss": net, "optimizer": adam.state_dict(), "counters": counters,
+            "torch_rng": torch.get_rng_state(), "cuda_rng": None, "config": to_dict(RunConfig()), "wandb_id": None,
+            "env": {"format": 1, "split": "train", "seed": 0, "num_envs": 4, "num_humans": 4, "min_humans": None,
+                    "next_episode": 19, "tensors": {"state.robot_position": torch.zeros(4, 2)}},
+            "pending_episodes": [(1, 0.5, 30), (2, -0.25, 12, 1.5)], "intrinsic_stats": None, "intrinsic_norm": None}
+    best = {"format": 1, "fingerprint": "abc", "net": net, "config": to_dict(RunConfig()), "frames": 96,
+            "val": {"success_rate": 0.25, "navigation_time": math.nan, "episodes": 4}}
+    return {"last.pt": last, "best.pt": best}
+
+
+@pytest.mark.parametrize("name", ["last.pt", "best.pt"])
+def test_checkpoints_in_the_layout_written_so_far_still_load(tmp_path, name):
+    saved = _old_layout()[name]
+    torch.save(saved, tmp_path / name)  # as the trainer saved before loads became weights_only
+    data = load_checkpoint(tmp_path / name, "abc")
+    assert data.keys() == saved.keys() and data["config"] == saved["config"]
+    assert torch.equal(data["net" if name == "best.pt" else "loss"]["w"], saved["net" if name == "best.pt" else "loss"]["w"])
+    if name == "last.pt":
+        assert data["counters"] == saved["counters"] and torch.equal(data["torch_rng"], saved["torch_rng"])
+        assert data["pending_episodes"] == saved["pending_episodes"]
+
+
+def test_a_file_of_another_format_gets_a_clear_error(tmp_path):
+    path = tmp_path / "old.pt"
+    torch.save({"net": {"w": torch.ones(1)}}, path)  # no format number
+    with pytest.raises(CheckpointError, match=rf"old\.pt is not a crowdrl checkpoint of format {FORMAT_VERSION}"):
+        load_checkpoint(path)
+
+
+def test_save_and_load_round_trip(tmp_path):
+    payload = _old_layout()["last.pt"]
+    del payload["format"], payload["fingerprint"]
+    save_checkpoint(tmp_path / "c.pt", payload, "fp")
+    data = load_checkpoint(tmp_path / "c.pt", "fp")
+    assert data["format"] == FORMAT_VERSION and data["fingerprint"] == "fp"
+    assert data["counters"] == payload["counters"] and data["config"] == payload["config"]
+    assert all(torch.equal(data["loss"][k], v) for k, v in payload["loss"].items())
+
+
+@pytest.mark.parametrize("value, where", [
+    (np.float64(0.5), r"\['val'\]\['score'\]"),
+    (np.zeros(2), r"\['val'\]\['score'\]"),
+    (namedtuple("Pair", "a b")(1, 2), r"\['val'\]\['score'\]"),
+])
+def test_a_payload_that_could_not_be_loaded_safely_is_not_written(tmp_path, value, where):
+    with pytest.raises(TypeError, match=rf"checkpoint payload{where} is a .*plain containers"):
+        save_checkpoint(tmp_path / "c.pt", {"val": {"score": value}}, "fp")
+    assert not (tmp_path / "c.pt").exists()
+
+
+def test_an_omegaconf_config_is_not_written(tmp_path):
+    from omegaconf import OmegaConf
+
+    with pytest.raises(TypeError, match=r"checkpoint payload\['config'\] is a omegaconf"):
+        save_checkpoint(tmp_path / "c.pt", {"config": OmegaConf.structured(RunConfig())}, "fp")

@@ -1,0 +1,247 @@
+"""ONNX export (crowdrl.export, experiments/export.py) and the numpy + onnxruntime example
+(experiments/onnx_example.py): the exported model acts as the library's greedy actor, the example
+runs where torch and crowdrl cannot be imported, bad arguments exit 2 naming the argument."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+onnx = pytest.importorskip("onnx")
+onnxruntime = pytest.importorskip("onnxruntime")
+
+from crowdrl.envs.robot_centric import robot_centric  # noqa: E402
+from crowdrl.export import INPUTS, export_onnx  # noqa: E402
+from crowdrl.sim.kinematics import action_table  # noqa: E402
+from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
+from crowdrl.training.config import to_dict, validate  # noqa: E402
+from crowdrl.training.factories import make_actor, make_env  # noqa: E402
+from crowdrl.training.pipeline import TEST_SEED  # noqa: E402
+from crowdrl.training.variants import make_network  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPORT = [sys.executable, str(ROOT / "experiments" / "export.py")]
+EXAMPLE = ROOT / "experiments" / "onnx_example.py"
+ENV = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+
+# a default run, the crowd sizes that vary (the mask is read), the other encoders, a noisy head
+CASES = {
+    "sgd3qn": {},
+    "sgd3qn-variable": {"env": {"num_humans": 6, "min_humans": 2}},
+    "sarl-variable": {"encoder": {"name": "sarl"}, "env": {"num_humans": 6, "min_humans": 2}},
+    "mp_rgl": {"encoder": {"name": "mp_rgl"}, "env": {"num_humans": 5}},
+    "lstm_rl-variable": {"encoder": {"name": "lstm_rl"}, "env": {"num_humans": 6, "min_humans": 2}},
+    "noisy": {"exploration": {"name": "noisy"}, "env": {"num_humans": 5}},
+}
+
+
+def make_run_folder(folder: Path, overrides: dict, seed: int = 0) -> Path:
+    """A run folder holding ``checkpoints/best.pt`` of a fresh network of ``overrides``' config."""
+    run = validate(overrides)
+    torch.manual_seed(seed)
+    config = to_dict(run)
+    save_checkpoint(folder / "checkpoints" / "best.pt", {"net": make_network(run).state_dict(), "config": config,
+                                                          "frames": 0, "val": {}}, config_fingerprint(config))
+    return folder
+
+
+def load_example():
+    spec = importlib.util.spec_from_file_location("onnx_example", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> tuple[Path, Path]:
+    """(the run folder, its exported model) of a default SG-D3QN config."""
+    base = tmp_path_factory.mktemp("export")
+    folder = make_run_folder(base / "run", {})
+    export_onnx(folder, base / "policy.onnx")
+    return folder, base / "policy.onnx"
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_exported_model_acts_as_the_library_actor_on_test_cases(tmp_path, case):
+    """1000 observations of the test stream (100 test cases x 10 steps, test seed 0): the same greedy
+    actions as the library's Q actor, Q within 1e-4, and each action's row of the action table."""
+    folder = make_run_folder(tmp_path / "run", CASES[case])
+    info = export_onnx(folder, tmp_path / "policy.onnx")
+    from crowdrl.training.pipeline import load_trained_network
+
+    run, net, _ = load_trained_network(folder)
+    env = make_env(run, split="test", num_envs=100, seed=TEST_SEED)
+    actor = make_actor(run, env, net)
+    with torch.no_grad():
+        td = env.rollout(10, actor, break_when_any_done=False).reshape(-1)
+    assert td.shape == (1000,)
+    session = onnxruntime.InferenceSession(str(info.path), providers=["CPUExecutionProvider"])
+    q, action, command = session.run(None, {k: td.get(k).numpy() for k in INPUTS})
+    lib_q, lib_action = td.get("action_value").numpy(), td.get("action").numpy()
+    np.testing.assert_allclose(q, lib_q, atol=1e-4, rtol=0)
+    differ = np.flatnonzero(action != lib_action)
+    rows = np.arange(len(lib_q))
+    gaps = np.abs(lib_q[rows, lib_action] - lib_q[rows, action])[differ]
+    assert (gaps < 1e-5).all(), f"{len(differ)} greedy actions differ, not on ties: Q gaps {gaps[:5]}"
+    assert len(differ) <= 2, f"{len(differ)} greedy actions differ (near-ties)"
+    np.testing.assert_array_equal(command, action_table(1.0).numpy()[action])
+    humans = session.get_inputs()[1].shape[1]
+    assert humans == (run.env.num_humans if case.startswith("lstm_rl") else "humans")
+
+
+def test_the_example_transform_equals_the_librarys():
+    example = load_example()
+    g = torch.Generator().manual_seed(1)
+    robot = torch.randn(64, 9, generator=g, dtype=torch.float64) * 4
+    robot[:, 8] = (torch.rand(64, generator=g, dtype=torch.float64) * 2 - 1) * 3 * torch.pi  # any heading
+    robot[:2, 8] = torch.tensor([torch.pi, -torch.pi])  # the wrap's edges
+    humans = torch.randn(64, 7, 5, generator=g, dtype=torch.float64) * 4
+    want = robot_centric(robot, humans)
+    got = example.robot_centric(robot.numpy(), humans.numpy())
+    for w, x in zip(want, got):
+        np.testing.assert_allclose(x, w.numpy(), atol=1e-12, rtol=0)
+
+
+def test_the_example_runs_where_torch_and_crowdrl_cannot_be_imported(exported, tmp_path):
+    """Modules named torch, crowdrl, tensordict and torchrl that raise ImportError come first on the
+    path: the example imports only numpy and onnxruntime, and acts as the library does."""
+    folder, model = exported
+    blocked = tmp_path / "blocked"
+    blocked.mkdir()
+    for name in ("torch", "crowdrl", "tensordict", "torchrl"):
+        (blocked / f"{name}.py").write_text(f"raise ImportError('{name} is blocked in this test')\n")
+    driver = (
+        "import runpy, sys\n"
+        "for name in ('torch', 'crowdrl'):\n"
+        "    try:\n"
+        "        __import__(name)\n"
+        "    except ImportError:\n"
+        "        pass\n"
+        "    else:\n"
+        "        raise SystemExit(f'{name} could be imported')\n"
+        f"sys.argv = [{str(EXAMPLE)!r}, {str(model)!r}, '--json']\n"
+        f"runpy.run_path({str(EXAMPLE)!r}, run_name='__main__')\n"
+        "assert 'torch' not in sys.modules and 'crowdrl' not in sys.modules\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([sys.executable, "-c", driver], env={**env, "PYTHONPATH": str(blocked)}, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+
+    # the same scene through the library: its transform, its greedy actor
+    from crowdrl.training.pipeline import load_trained_network
+
+    example = load_example()
+    robot = torch.tensor([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, np.pi / 2])
+    humans = torch.tensor([[0.3, -2.5, 0.0, -0.8, 0.3], [-1.5, -1.0, 0.6, 0.0, 0.3], [2.0, 1.0, 0.0, 0.0, 0.3]])
+    assert "robot = np.array([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, math.pi / 2])" in EXAMPLE.read_text()
+    _, net, _ = load_trained_network(folder)
+    with torch.no_grad():
+        q = net(*robot_centric(robot[None], humans[None]))
+    assert result["action"] == int(q.argmax()) and abs(result["q"] - float(q.max())) < 1e-4
+    speed, rotation = action_table(1.0)[result["action"]].tolist()
+    assert (result["speed"], result["rotation"]) == pytest.approx((speed, rotation))
+    heading = np.pi / 2 + rotation
+    assert result["velocity_world"] == pytest.approx([speed * np.cos(heading), speed * np.sin(heading)])
+    feeds = example.observation(robot.numpy(), humans.numpy())
+    assert feeds["humans_mask"].all() and feeds["robot_rc"].dtype == np.float32
+
+
+def test_a_planning_checkpoint_exports_its_q_policy_and_says_so(tmp_path):
+    folder = make_run_folder(tmp_path / "run", {"planning": {"enabled": True}, "env": {"num_humans": 5}})
+    work = tmp_path / "work"
+    work.mkdir()
+    proc = subprocess.run([*EXPORT, f"checkpoint={folder}", "out=policy.onnx"], cwd=work, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "planning is not exported" in proc.stdout
+    assert sorted(p.name for p in work.iterdir()) == ["policy.onnx"], "no Hydra folder or log beside it"
+    meta = {p.key: p.value for p in onnx.load(work / "policy.onnx").metadata_props}
+    assert meta["crowdrl.planning"].startswith("not exported: the checkpoint acts with online planning")
+    assert meta["crowdrl.encoder"] == "sgd3qn" and json.loads(meta["crowdrl.config"])["planning"]["enabled"]
+    assert export_onnx(folder, tmp_path / "again.onnx", check=False).planning_dropped
+
+
+class _Payload:
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch '{self.marker}'",)
+
+
+@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format"])
+def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
+    folder, _ = exported
+    args, words = [f"checkpoint={folder}", f"out={tmp_path / 'p.onnx'}"], []
+    if bad == "missing":
+        args[0], words = f"checkpoint={tmp_path / 'nope.pt'}", ["checkpoint: no checkpoint at", "nope.pt"]
+    elif bad == "corrupt":
+        (tmp_path / "bad.pt").write_bytes((folder / "checkpoints" / "best.pt").read_bytes()[:2000])
+        args[0], words = f"checkpoint={tmp_path / 'bad.pt'}", ["checkpoint:", "bad.pt", "truncated or corrupt"]
+    elif bad == "unsafe":
+        torch.save({"format": 1, "net": _Payload(tmp_path / "marker")}, tmp_path / "evil.pt")
+        args[0], words = f"checkpoint={tmp_path / 'evil.pt'}", ["checkpoint:", "evil.pt was refused"]
+    elif bad == "out":
+        (tmp_path / "file").write_text("")
+        args[1], words = f"out={tmp_path / 'file' / 'p.onnx'}", ["out: cannot write", "is a file, not a folder"]
+    else:
+        args.append("format=tflite")
+        words = ["format: got 'tflite'; allowed: onnx"]
+    proc = subprocess.run([*EXPORT, *args], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "p.onnx").exists() and not (tmp_path / "marker").exists()
+
+
+def test_export_traces_the_compiled_attention_kernel_as_plain_torch(exported, tmp_path):
+    """With the compiled pairwise kernels (the library's default outside tests), tracing calls the
+    kernel's plain function: torch.jit cannot trace a torch.compile'd one."""
+    from crowdrl.models import sgd3qn
+
+    folder, reference = exported
+    previous = sgd3qn.PAIRWISE.backend
+    sgd3qn.set_pairwise_backend("compiled")
+    try:
+        info = export_onnx(folder, tmp_path / "policy.onnx", check=False)  # no torch forward: nothing compiles
+    finally:
+        sgd3qn.set_pairwise_backend(previous)
+    feeds = load_example().observation(np.array([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, 1.5]),
+                                       np.array([[0.3, -2.5, 0.0, -0.8, 0.3], [1.0, 1.0, 0.0, 0.0, 0.3]]))
+    got, want = (onnxruntime.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(["q_values"], feeds)[0]
+                 for p in (info.path, reference))
+    np.testing.assert_array_equal(got, want)
+
+
+def test_lstm_rls_order_of_humans_with_ties_is_the_same_in_onnx():
+    """ONNX has no stable sort: the export sorts with TopK, whose ties keep the lower index first."""
+    import io
+    import warnings
+
+    from crowdrl.models.lstm_rl import sort_far_to_near
+
+    class Order(torch.nn.Module):
+        def forward(self, humans, mask):
+            return sort_far_to_near(humans, mask)[0]
+
+    humans = torch.zeros(1, 6, 5)
+    humans[0, :, 0] = torch.tensor([1.0, 2.0, 1.0, 2.0, 1.0, 3.0])  # equal distances
+    humans[0, :, 4] = torch.arange(6.0)  # tags the rows
+    mask = torch.tensor([[True, True, False, True, True, False]])  # the absent: all at infinity
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(Order(), (humans, mask), buf, input_names=["humans", "mask"], dynamo=False)
+    got = onnxruntime.InferenceSession(buf.getvalue(), providers=["CPUExecutionProvider"]).run(
+        None, {"humans": humans.numpy(), "mask": mask.numpy()})[0]
+    np.testing.assert_array_equal(got, sort_far_to_near(humans, mask)[0].numpy())
