@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
     from omegaconf import OmegaConf
 
-    from crowdrl.training import ConfigError
+    from crowdrl.training import CheckpointError, ConfigError
 
     try:
         cfg, run = compose_run(args.overrides)
@@ -66,14 +66,18 @@ def main(argv: list[str] | None = None) -> dict:
     from crowdrl.training.factories import crowd_config
     from crowdrl.training import run_training
 
+    from crowdrl.training.run_folder import RunFolderRefused
+
     out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     method = f"{run.encoder.name} + {run.exploration.name}" + (" + planning" if run.planning.enabled else "")
     print(f"training {method} on {run.env.scenario}, preset {run.preset}, "
           f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)
     start = time.perf_counter()
-    summary = run_training(run, out)
+    try:  # config.yaml is written under the folder's lock, once every check has passed
+        summary = run_training(run, out, prepare=lambda: (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg)))
+    except (CheckpointError, RunFolderRefused) as exc:
+        print(f"demo.py: cannot run in {out}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     train_s = time.perf_counter() - start
     agent = summary["test"]["metrics"]
 

@@ -6,7 +6,7 @@ import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
@@ -14,6 +14,7 @@ from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
 from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
+from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
 
@@ -21,15 +22,28 @@ TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
 EVAL_BATCH = 1000  # episodes stepped at once by evaluation
 
 
-def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None) -> dict[str, Any]:
+def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None,
+                 prepare: Callable[[], None] | None = None) -> dict[str, Any]:
     """Train (or resume) in ``run_dir``, then test the best policy; returns the summary.
 
-    ``render`` (default ``run.logger.render``) draws the learning curves and test case 0."""
+    Every refusal comes before anything in the folder is written: a folder that holds files but is
+    no run folder (:class:`RunFolderRefused`), one another process writes (:class:`RunFolderBusy`),
+    a checkpoint of another run (:class:`CheckpointError`). ``prepare`` runs once
+    these checks have passed, under the lock and before the first write, for a run that starts
+    from scratch (train.py writes ``config.yaml`` there). ``render`` (default
+    ``run.logger.render``) draws the learning curves and test case 0."""
     run_dir = Path(run_dir)
     render = run.logger.render if render is None else render
-    trainer = Trainer(run, run_dir)
-    trainer.restore()  # a refused resume raises here, before anything in the folder changes
-    lock = lock_run_dir(run_dir)
+    check_run_folder(run_dir)
+    lock = lock_run_dir(run_dir)  # before the first write: one writer per folder
+    try:
+        trainer = Trainer(run, run_dir)
+        resumed = trainer.restore()  # a refused resume raises here, before anything in the folder changes
+        if prepare is not None and resumed is None:
+            prepare()
+    except BaseException:
+        lock.close()
+        raise
     start = time.perf_counter()
     try:
         with stop_signals(trainer):
@@ -68,10 +82,6 @@ def lock_run_dir(run_dir: Path):
         handle.close()
         raise RunFolderBusy(f"{run_dir} is being written by another process; give this run its own folder") from None
     return handle
-
-
-class RunFolderBusy(RuntimeError):
-    """Another process holds the run folder."""
 
 
 @contextmanager

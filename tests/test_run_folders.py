@@ -1,0 +1,129 @@
+"""Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
+it created; one writer per folder, locked before the first write."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from crowdrl.training.config import RunConfig, validate
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
+ENV = {**os.environ, "WANDB_MODE": "offline"}
+
+
+def folder_state(folder: Path) -> dict[str, str]:
+    """Every file and folder below ``folder``, a file by the hash of its bytes."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir"
+            for p in sorted(folder.rglob("*"))}
+
+
+def train(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([*TRAIN, *args], env=ENV, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """A finished smoke run of seed 0 made by train.py (copy it before changing it)."""
+    run = tmp_path_factory.mktemp("runs") / "s0"
+    proc = train("preset=smoke", "logger=csv", "logger.render=false", "seed=0", f"hydra.run.dir={run}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return run
+
+
+@pytest.mark.parametrize("kind", ["user_files", "empty"])
+def test_a_config_error_leaves_an_existing_folder_as_it_was(tmp_path, kind):
+    """`train.lr=-1 hydra.run.dir=u`: u (the user's train.log and .hydra/mine.txt, or an empty
+    folder the user made) is neither deleted nor written to."""
+    user = tmp_path / "u"
+    user.mkdir()
+    if kind == "user_files":
+        (user / ".hydra").mkdir()
+        (user / ".hydra" / "mine.txt").write_text("mine")
+        (user / "train.log").write_text("my log")
+    before = folder_state(user)
+    proc = train("train.lr=-1", f"hydra.run.dir={user}")
+    assert proc.returncode == 2 and "train.lr" in proc.stderr, proc.stderr[-2000:]
+    assert user.is_dir() and folder_state(user) == before
+
+
+def test_a_config_error_removes_only_the_folders_the_run_created(tmp_path):
+    """The folders Hydra created for a refused run are removed, deepest first, up to one that existed."""
+    from crowdrl.training import run_folder
+
+    made = tmp_path / "new" / "a" / "b"
+    run_folder.note_new_folders(made)
+    made.mkdir(parents=True)
+    run_folder.discard_new_folders(made)
+    assert not (tmp_path / "new").exists() and tmp_path.is_dir()
+
+    kept = tmp_path / "k" / "c"
+    run_folder.note_new_folders(kept)
+    kept.mkdir(parents=True)
+    (kept / "x.txt").write_text("written by someone else meanwhile")
+    run_folder.discard_new_folders(kept)  # not empty: left alone
+    assert (kept / "x.txt").read_text().startswith("written")
+
+
+def test_a_second_run_into_a_locked_folder_is_refused_before_any_write(finished_run, tmp_path):
+    """The first run holds the lock; a second start (seed 5) into its folder writes no config.yaml,
+    no .hydra/ file: the folder is byte for byte as it was."""
+    from crowdrl.training.pipeline import lock_run_dir
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = folder_state(run)
+    holder = lock_run_dir(run)  # what the first, still running, writer holds
+    try:
+        proc = train("preset=smoke", "logger=csv", "seed=5", f"hydra.run.dir={run}")
+    finally:
+        holder.close()
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert folder_state(run) == before
+    assert "another process" in proc.stderr  # the lock is the first check, before the fingerprint's
+
+
+def test_run_training_calls_prepare_only_once_the_lock_is_held(tmp_path):
+    from crowdrl.training.pipeline import RunFolderBusy, lock_run_dir, run_training
+
+    holder = lock_run_dir(tmp_path)
+    called = []
+    with pytest.raises(RunFolderBusy):
+        run_training(validate(RunConfig()), tmp_path, prepare=lambda: called.append(1))
+    holder.close()
+    assert not called and [p.name for p in tmp_path.iterdir()] == [".lock"]
+
+
+def test_a_refused_fresh_start_into_another_run_changes_nothing(finished_run, tmp_path):
+    """`seed=1 hydra.run.dir=<a seed-0 run>`: refused (rc 2) with config.yaml and .hydra/* unchanged."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = folder_state(run)
+    proc = train("preset=smoke", "logger=csv", "seed=1", f"hydra.run.dir={run}")
+    assert proc.returncode == 2 and "another configuration" in proc.stderr, proc.stderr[-2000:]
+    assert folder_state(run) == before
+
+
+@pytest.mark.parametrize("kind", ["user_files", "empty"])
+def test_a_folder_not_made_by_crowdrl_is_refused_unless_empty(tmp_path, kind):
+    from crowdrl.training.pipeline import RunFolderRefused, run_training
+    from crowdrl.training.run_folder import check_run_folder
+
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    if kind == "empty":
+        check_run_folder(folder)  # an empty folder is fine
+        return
+    (folder / "notes.txt").write_text("mine")
+    (folder / "config.yaml").write_text("seed: 3\n")
+    before = folder_state(folder)
+    with pytest.raises(RunFolderRefused, match="no crowdrl run folder"):
+        run_training(validate(RunConfig()), folder)
+    assert folder_state(folder) == before
