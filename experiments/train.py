@@ -45,6 +45,7 @@ _register_schema()
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
+    from crowdrl.training.pipeline import completed_summary
     from crowdrl.training.run_folder import RunFolderRefused, discard_new_folders
     from crowdrl.training.trainer import NonFiniteError
 
@@ -60,6 +61,8 @@ def main(cfg: DictConfig) -> float:
     run_dir = Path(run.resume) if run.resume else out_dir
     if run.resume:
         discard_new_folders(out_dir)
+    status = run_dir / "status.json"
+    complete_status = status.read_bytes() if completed_summary(run_dir) is not None else None
     try:  # config.yaml, .hydra/ and train.log: written only once every check has passed, under the lock
         summary = run_training(run, run_dir, prepare=None if run.resume else lambda: _start_run_folder(run_dir, cfg))
     except (CheckpointError, RunFolderRefused) as exc:  # refused before anything in the folder changed
@@ -74,6 +77,8 @@ def main(cfg: DictConfig) -> float:
         print(f"interrupted ({exc}); resume with: python experiments/train.py resume={run_dir}", file=sys.stderr)
         raise SystemExit(130) from None
     m = summary["test"]["metrics"]
+    if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
+        print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
     print(f"run folder: {run_dir.resolve()}")
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
           f"nav time {m['navigation_time']:.2f} s  return {m['average_return']:.4f}")

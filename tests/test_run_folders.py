@@ -1,9 +1,10 @@
 """Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
-it created; one writer per folder, locked before the first write."""
+it created; one writer per folder, locked before the first write; a finished run stays finished."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -127,3 +128,19 @@ def test_a_folder_not_made_by_crowdrl_is_refused_unless_empty(tmp_path, kind):
     with pytest.raises(RunFolderRefused, match="no crowdrl run folder"):
         run_training(validate(RunConfig()), folder)
     assert folder_state(folder) == before
+
+
+@pytest.mark.parametrize("how", ["resume", "run_dir"])
+def test_a_finished_run_started_again_reports_complete_and_changes_nothing(finished_run, tmp_path, how):
+    """`resume=<finished run>` and `hydra.run.dir=<finished run>`: rc 0, "completed", no second test
+    row in scalars.jsonl, status.json and summary.json untouched."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = folder_state(run)
+    args = [f"resume={run}"] if how == "resume" else ["preset=smoke", "logger=csv", "seed=0", f"hydra.run.dir={run}"]
+    proc = train(*args)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = [json.loads(line) for line in (run / "scalars.jsonl").read_text().splitlines()]
+    assert sum(r["kind"] == "test" for r in rows) == 1
+    assert folder_state(run) == before
+    assert "holds a completed run" in proc.stdout and "success" in proc.stdout

@@ -28,7 +28,8 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
 
     Every refusal comes before anything in the folder is written: a folder that holds files but is
     no run folder (:class:`RunFolderRefused`), one another process writes (:class:`RunFolderBusy`),
-    a checkpoint of another run (:class:`CheckpointError`). ``prepare`` runs once
+    a checkpoint of another run (:class:`CheckpointError`). A finished run (status ``completed``,
+    every frame trained) returns its ``summary.json`` and changes nothing. ``prepare`` runs once
     these checks have passed, under the lock and before the first write, for a run that starts
     from scratch (train.py writes ``config.yaml`` there). ``render`` (default
     ``run.logger.render``) draws the learning curves and test case 0."""
@@ -39,6 +40,11 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
     try:
         trainer = Trainer(run, run_dir)
         resumed = trainer.restore()  # a refused resume raises here, before anything in the folder changes
+        done = completed_summary(run_dir) if trainer.counters.frames >= run.train.total_frames else None
+        if done is not None:
+            trainer.close()
+            lock.close()
+            return done
         if prepare is not None and resumed is None:
             prepare()
     except BaseException:
@@ -82,6 +88,20 @@ def lock_run_dir(run_dir: Path):
         handle.close()
         raise RunFolderBusy(f"{run_dir} is being written by another process; give this run its own folder") from None
     return handle
+
+
+def completed_summary(run_dir: Path | str) -> dict[str, Any] | None:
+    """The ``summary.json`` of a finished run (``status.json`` says ``completed``), else ``None``."""
+    run_dir = Path(run_dir)
+    try:
+        status = json.loads((run_dir / "status.json").read_text())
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(status, dict) and status.get("state") == "completed" and isinstance(summary, dict)
+            and "test" in summary):
+        return None
+    return summary
 
 
 @contextmanager
