@@ -38,6 +38,13 @@ def compose_run(overrides: list[str]):
     return cfg, validate(cfg)
 
 
+def default_out(run) -> Path:
+    """``runs/demo-<time>-<scenario>-s<seed>-<uid>``: demos started in the same second never share a folder."""
+    from crowdrl.training.config import run_uid
+
+    return ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}-{run_uid()}")
+
+
 def format_comparison(agent: dict, orca: dict, label: str) -> str:
     rows = [(label, agent), ("ORCA (same cases)", orca)]
     lines = [f"{'policy':<28} {'success':>8} {'collision':>9} {'timeout':>8} {'nav time':>9} {'return':>8}"]
@@ -49,7 +56,7 @@ def format_comparison(agent: dict, orca: dict, label: str) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>)")
+    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>-<scenario>-s<seed>-<uid>)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides of conf/config.yaml, e.g. seed=1")
     args = p.parse_args(argv)
     from omegaconf import OmegaConf
@@ -68,7 +75,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from crowdrl.training.run_folder import RunFolderRefused
 
-    out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
+    out = args.out or default_out(run)
     method = f"{run.encoder.name} + {run.exploration.name}" + (" + planning" if run.planning.enabled else "")
     print(f"training {method} on {run.env.scenario}, preset {run.preset}, "
           f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)

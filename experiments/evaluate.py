@@ -25,6 +25,15 @@ os.environ.setdefault("WANDB_MODE", "offline")
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 
+def _register_resolvers() -> None:
+    from crowdrl.training.config import register_resolvers
+
+    register_resolvers()  # ${crowdrl_uid:} in the default eval folder's name
+
+
+_register_resolvers()
+
+
 @hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     import torch

@@ -1,11 +1,13 @@
 """Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
-it created; one writer per folder, locked before the first write; a finished run stays finished."""
+it created; one writer per folder, locked before the first write; a finished run stays finished;
+default folders are unique."""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -144,3 +146,26 @@ def test_a_finished_run_started_again_reports_complete_and_changes_nothing(finis
     assert sum(r["kind"] == "test" for r in rows) == 1
     assert folder_state(run) == before
     assert "holds a completed run" in proc.stdout and "success" in proc.stdout
+
+
+def test_default_folders_of_every_entry_point_carry_a_unique_part():
+    """Evaluations (and demo runs) started in the same second never share a folder."""
+    from hydra import compose, initialize_config_dir
+
+    from crowdrl.training.config import register_resolvers
+
+    register_resolvers()
+    dirs = []
+    for _ in range(2):
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            cfg = compose(config_name="evaluate", return_hydra_config=True)
+        dirs.append(str(cfg.hydra.run.dir))
+    assert all(re.fullmatch(r"runs/eval-\d{8}-\d{6}-[0-9a-f]{6}", d) for d in dirs), dirs
+    assert dirs[0] != dirs[1]
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("demo_script", ROOT / "experiments" / "demo.py")
+    demo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo)
+    first, second = demo.default_out(RunConfig()), demo.default_out(RunConfig())
+    assert first != second and re.fullmatch(r"demo-\d{8}-\d{6}-circle-s0-[0-9a-f]{6}", first.name), first
