@@ -1,6 +1,6 @@
 """Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
 it created; one writer per folder, locked before the first write; a finished run stays finished;
-default folders are unique."""
+default folders are unique; seeds stay within 0..2**63-1."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from crowdrl.training.config import RunConfig, validate
+from crowdrl.training.config import ConfigError, RunConfig, validate
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
@@ -169,3 +169,24 @@ def test_default_folders_of_every_entry_point_carry_a_unique_part():
     spec.loader.exec_module(demo)
     first, second = demo.default_out(RunConfig()), demo.default_out(RunConfig())
     assert first != second and re.fullmatch(r"demo-\d{8}-\d{6}-circle-s0-[0-9a-f]{6}", first.name), first
+
+
+def test_seeds_beyond_int64_are_refused_naming_the_key():
+    big = 2**63
+    with pytest.raises(ConfigError, match=r"^seed: must lie in 0\.\.2\*\*63-1"):
+        validate(RunConfig(seed=big))
+    assert validate(RunConfig(seed=big - 1)).seed == big - 1
+    from crowdrl.training.pipeline import evaluate_spec
+
+    with pytest.raises(ValueError, match=r"^eval\.seed: must lie in 0\.\.2\*\*63-1"):
+        evaluate_spec(policy="orca", seed=5 + 2**64, episodes=1)
+
+
+def test_the_gymnasium_face_refuses_seeds_it_would_reduce_modulo_2_64():
+    from crowdrl.gym_env import CrowdNavGymEnv
+
+    env = CrowdNavGymEnv()
+    for seed in (2**63, 5 + 2**64, -1):
+        with pytest.raises(ValueError, match=r"0\.\.2\*\*63-1"):
+            env.reset(seed=seed)
+    env.reset(seed=2**63 - 1)

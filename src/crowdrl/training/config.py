@@ -23,6 +23,7 @@ from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
+from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")
@@ -253,7 +254,7 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
     _one_of(p.predictor, "planning.predictor", PREDICTORS)
     _check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
-    _check(run.seed >= 0, "seed", f"must be >= 0, got {run.seed}")
+    _check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
     _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "

@@ -224,6 +224,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
+    from crowdrl.sim.rng import MAX_SEED
 
     if (checkpoint is None) == (policy is None):
         raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")
@@ -234,6 +235,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     for name, value, low in (("eval.episodes", episodes, 1), ("eval.seed", seed, 0), ("eval.batch", batch, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
+    if seed > MAX_SEED:  # never reduced modulo 2**64 (seed 5 + 2**64 would replay seed 5's cases)
+        raise ValueError(f"eval.seed: must lie in 0..2**63-1 ({MAX_SEED}), got {seed}")
     if num_humans is not None and not (isinstance(num_humans, int) and not isinstance(num_humans, bool)
                                        and 1 <= num_humans <= MAX_HUMANS):
         raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
