@@ -13,7 +13,7 @@ and writes the learning curves, a PNG and a GIF of test case 0 into the run fold
 from __future__ import annotations
 
 import argparse
-import json
+import math
 import os
 import sys
 import time
@@ -49,8 +49,9 @@ def format_comparison(agent: dict, orca: dict, label: str) -> str:
     rows = [(label, agent), ("ORCA (same cases)", orca)]
     lines = [f"{'policy':<28} {'success':>8} {'collision':>9} {'timeout':>8} {'nav time':>9} {'return':>8}"]
     for name, m in rows:
+        nav = math.nan if m["navigation_time"] is None else m["navigation_time"]  # null: no case reached the goal
         lines.append(f"{name:<28} {m['success_rate']:8.3f} {m['collision_rate']:9.3f} {m['timeout_rate']:8.3f} "
-                     f"{m['navigation_time']:8.2f}s {m['average_return']:8.4f}")
+                     f"{nav:8.2f}s {m['average_return']:8.4f}")
     return "\n".join(lines)
 
 
@@ -70,6 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     from crowdrl.evaluation import evaluate_orca
+    from crowdrl.files import atomic_write_json
     from crowdrl.training.factories import crowd_config
     from crowdrl.training import run_training
 
@@ -94,7 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"agent": agent, "orca": orca, "beats_orca": agent["success_rate"] > orca["success_rate"],
               "frames": summary["frames"], "updates": summary["updates"], "best_frames": summary["best_frames"],
               "wall_s": train_s, "test_cases": run.train.test_episodes, "test_seed": summary["test"]["test_seed"]}
-    (out / "demo.json").write_text(json.dumps(result, indent=1))
+    atomic_write_json(out / "demo.json", result)
     print()
     print(f"{run.train.test_episodes} {run.env.scenario} test cases (test seed {result['test_seed']}); "
           f"{summary['frames']} frames, {summary['updates']} updates, {train_s / 60:.1f} min incl. validation and test")

@@ -165,9 +165,9 @@ def check_manifest(plan: Plan) -> None:
             raise PlanError(f"out: {plan.out} holds results made with other settings ({said}); "
                             f"pass a fresh out=<folder> or delete {plan.out} to start again")
         return
-    from crowdrl.files import atomic_write_bytes
+    from crowdrl.files import atomic_write_json
 
-    atomic_write_bytes(path, json.dumps(want, indent=1).encode())
+    atomic_write_json(path, want)
 
 
 # ----------------------------------------------------------------------------- jobs
@@ -371,11 +371,11 @@ def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) ->
     import csv
     import io
 
-    from crowdrl.files import atomic_write_bytes
+    from crowdrl.files import atomic_write_bytes, atomic_write_json
 
     atomic_write_bytes(plan.out / "table.md", markdown(plan, rows, wall_s).encode())
-    atomic_write_bytes(plan.out / "table.json", json.dumps({"manifest": plan.manifest(), "seeds": list(plan.seeds),
-                                                            "wall_s": wall_s, "rows": rows}, indent=1).encode())
+    atomic_write_json(plan.out / "table.json", {"manifest": plan.manifest(), "seeds": list(plan.seeds),
+                                                "wall_s": wall_s, "rows": rows})
     flat = [{k: v for k, v in r.items() if not k.endswith("_per_seed")} for r in rows]
     fields = list(dict.fromkeys(k for r in flat for k in r))
     buf = io.StringIO()

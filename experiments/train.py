@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -80,8 +81,9 @@ def main(cfg: DictConfig) -> float:
     if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
         print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
     print(f"run folder: {run_dir.resolve()}")
+    nav = m["navigation_time"]  # null in summary.json when no case reached the goal
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
-          f"nav time {m['navigation_time']:.2f} s  return {m['average_return']:.4f}")
+          f"nav time {math.nan if nav is None else nav:.2f} s  return {m['average_return']:.4f}")
     return float(m["success_rate"])
 
 

@@ -4,6 +4,7 @@ default folders are unique; seeds stay within 0..2**63-1."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -190,3 +191,55 @@ def test_the_gymnasium_face_refuses_seeds_it_would_reduce_modulo_2_64():
         with pytest.raises(ValueError, match=r"0\.\.2\*\*63-1"):
             env.reset(seed=seed)
     env.reset(seed=2**63 - 1)
+
+
+# ----------------------------------------------------------------------------- smaller (defect 9)
+
+
+def _strict(text: str):
+    def refuse(name: str):
+        raise ValueError(f"bare {name} is not JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_json_records_are_strict_with_null_for_undefined_metrics(tmp_path):
+    from crowdrl.evaluation.report import markdown_table, write_records
+    from crowdrl.files import dumps_json
+
+    assert dumps_json({"a": float("nan"), "b": [float("inf"), 1.5, (float("-inf"),)]}, indent=None) == \
+        '{"a": null, "b": [null, 1.5, [null]]}'
+    record = {"success_rate": 0.0, "collision_rate": 1.0, "timeout_rate": 0.0, "navigation_time": float("nan"),
+              "average_return": -0.25, "discomfort_frequency": 0.0, "min_separation": float("inf"),
+              "episodes": 2, "seed": 0, "scenario": "circle", "policy": "x"}
+    json_path, _ = write_records(tmp_path, [record])
+    back = _strict(json_path.read_text())
+    assert back["navigation_time"] is None and back["min_separation"] is None
+    assert "| – |" in markdown_table([back])  # the readers take null as undefined
+
+
+def test_a_runs_json_files_are_strict_and_read_back(finished_run):
+    from crowdrl.training.pipeline import completed_summary
+
+    for name in ("status.json", "summary.json", "eval.json"):
+        _strict((finished_run / name).read_text())
+    assert completed_summary(finished_run)["test"]["metrics"]["episodes"] == 8
+
+
+def test_atomic_writes_leave_the_mode_a_plain_open_would(tmp_path):
+    from crowdrl.files import atomic_write_bytes
+
+    old = os.umask(0o022)
+    try:
+        atomic_write_bytes(tmp_path / "a.json", b"{}")
+        open(tmp_path / "plain.json", "w").close()
+        assert (tmp_path / "a.json").stat().st_mode & 0o777 == (tmp_path / "plain.json").stat().st_mode & 0o777 == 0o644
+        os.umask(0o027)
+        atomic_write_bytes(tmp_path / "b.json", b"{}")
+        assert (tmp_path / "b.json").stat().st_mode & 0o777 == 0o640
+        (tmp_path / "a.json").chmod(0o600)  # an existing file keeps its mode, as open(path, "w") leaves it
+        atomic_write_bytes(tmp_path / "a.json", b"[]")
+        assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o600 and (tmp_path / "a.json").read_bytes() == b"[]"
+    finally:
+        os.umask(old)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "plain.json"]  # no temp file left

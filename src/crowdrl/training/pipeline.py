@@ -11,7 +11,8 @@ from typing import Any, Callable
 import torch
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
-from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
+from crowdrl.files import atomic_write_json
+from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint
 from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
@@ -59,7 +60,7 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
         trainer.emit({"kind": "test", "frames": trainer.counters.frames,
                       **{f"test/{k}": v for k, v in result["metrics"].items()}})
         trainer.write_status("completed", **summary)
-        atomic_write_bytes(run_dir / "summary.json", json.dumps(summary, indent=1, default=str).encode())
+        atomic_write_json(run_dir / "summary.json", summary, default=str)
     except BaseException as exc:
         trainer.write_status("failed" if not isinstance(exc, KeyboardInterrupt) else "interrupted",
                              error=repr(exc), frames=trainer.counters.frames)
@@ -206,7 +207,7 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
 
         plot_trajectory(traj, run_dir / f"test_case{record_episode}.png", title=f"test case {record_episode}")
         animate_trajectory(traj, run_dir / f"test_case{record_episode}.gif")
-    atomic_write_bytes(run_dir / "eval.json", json.dumps(out, indent=1).encode())
+    atomic_write_json(run_dir / "eval.json", out)
     return out
 
 
