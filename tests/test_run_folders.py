@@ -196,6 +196,15 @@ def test_the_gymnasium_face_refuses_seeds_it_would_reduce_modulo_2_64():
 # ----------------------------------------------------------------------------- smaller (defect 9)
 
 
+def test_run_dir_is_refused_naming_the_key_but_null_still_loads():
+    with pytest.raises(ConfigError, match=r"^run_dir: is not used .*hydra\.run\.dir"):
+        validate(RunConfig(run_dir="runs/x"))
+    assert validate({"run_dir": None, "seed": 3}).seed == 3  # the config.yaml of older run folders
+    repo_sets_it = subprocess.run(["git", "grep", "-nE", r"run_dir[:=] *[^ n]", "--", "conf"], cwd=ROOT,
+                                  capture_output=True, text=True)
+    assert repo_sets_it.stdout == ""
+
+
 def _strict(text: str):
     def refuse(name: str):
         raise ValueError(f"bare {name} is not JSON")

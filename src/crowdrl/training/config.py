@@ -143,6 +143,8 @@ class RunConfig:
     threads: int = 1
     device: str = "cpu"
     resume: str | None = None
+    # never used: kept (null only) so that the config.yaml of older run folders, which hold
+    # ``run_dir: null``, still loads; a value is refused (the folder is hydra.run.dir or --out)
     run_dir: str | None = None
 
 
@@ -259,6 +261,8 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
+    _check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
+           f"hydra.run.dir=<folder> (train.py), --out <folder> (demo.py) or resume=<folder>")
     check_device(run.device)
     return run
 
