@@ -193,6 +193,84 @@ def test_the_gymnasium_face_refuses_seeds_it_would_reduce_modulo_2_64():
     env.reset(seed=2**63 - 1)
 
 
+# ----------------------------------------------------------------------------- resource bounds (defect 5)
+
+
+def _compose(*overrides: str):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+
+    from crowdrl.training.config import register_resolvers
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize("override, key", [("planning.depth=7", "planning.depth"),
+                                           ("train.buffer_size=10000000000", "train.buffer_size")])
+def test_settings_that_exhaust_memory_are_refused_at_once_naming_the_key(override, key):
+    import time
+
+    cfg = _compose(override)
+    start = time.perf_counter()
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)}.*GiB.*available.*lower {re.escape(key)}"):
+        validate(cfg)
+    assert time.perf_counter() - start < 1.0
+
+
+def test_train_py_refuses_a_planner_that_cannot_fit_with_exit_code_2(tmp_path):
+    proc = train("planning.depth=7", f"hydra.run.dir={tmp_path / 'r'}", timeout=120)
+    assert proc.returncode == 2 and "planning.depth" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("preset", ["smoke", "demo", "episodes", "paper"])
+@pytest.mark.parametrize("encoder", ["sgd3qn", "sarl", "lstm_rl", "mp_rgl"])
+def test_every_preset_passes_the_resource_checks(preset, encoder):
+    run = validate(_compose(f"preset={preset}", f"encoder={encoder}"))
+    assert run.planning.enabled  # conf/config.yaml plans by default: the planner's bound is checked too
+
+
+def test_the_resource_checks_compare_with_the_memory_available(monkeypatch):
+    from crowdrl.training import config
+
+    run = validate(_compose("preset=demo"))
+    need = config.buffer_bytes(run) + config.planner_bytes(run)
+    monkeypatch.setattr(config, "available_memory", lambda device="cpu": need)
+    validate(run)  # exactly enough
+    monkeypatch.setattr(config, "available_memory", lambda device="cpu": config.buffer_bytes(run))
+    with pytest.raises(ConfigError, match=r"^planning\.depth/planning\.width: the planner expands 10000 states per "
+                                          r"step .*B = 1000.* of up to 10 humans"):
+        validate(run)
+    saved = dataclasses.replace(run, train=dataclasses.replace(run.train, save_buffer=True))
+    monkeypatch.setattr(config, "available_memory", lambda device="cpu": 2 * config.buffer_bytes(run))
+    with pytest.raises(ConfigError, match=r"^train\.buffer_size: .*x3 with train\.save_buffer=true.*save_buffer=false"):
+        validate(saved)
+    monkeypatch.setattr(config, "available_memory", lambda device="cpu": None)  # unknown: no refusal
+    validate(saved)
+    with_planning = validate(_compose("preset=demo", "planning.depth=2"))
+    assert config.planned_states(with_planning) == 1000 * (10 + 100)
+    assert config.planned_states(validate(_compose("preset=demo", "planning.enabled=false"))) == 0
+
+
+@pytest.mark.parametrize("overrides", [["planning.enabled=false"], ["planning.enabled=true"],
+                                       ["planning.enabled=false", "env.min_humans=5", "env.max_humans=20"]])
+def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
+    """The estimate behind train.buffer_size's bound, against a real buffer's stored transition."""
+    from crowdrl.training.config import transition_bytes
+    from crowdrl.training.factories import crowd_config, make_buffer, make_env, obs_keys, stored_keys
+
+    run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))
+    keys = obs_keys(crowd_config(run))
+    batch = make_env(run).rollout(3, break_when_any_done=False)
+    buffer, _ = make_buffer(run, keys=keys)
+    buffer.extend(batch.select(*stored_keys(run, keys)))
+    one = buffer.storage[0]
+    assert transition_bytes(run) == sum(v.numel() * v.element_size() for v in one.values(True, True))
+
+
 # ----------------------------------------------------------------------------- smaller (defect 9)
 
 

@@ -13,14 +13,13 @@ import torch
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint
-from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
 
 TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
-EVAL_BATCH = 1000  # episodes stepped at once by evaluation
 
 
 def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None,
@@ -153,7 +152,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
         raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
                               f"checkpoints/best.pt")
     try:
-        run = validate(data["config"])
+        run = validate(data["config"], resources=False)  # what training needed is no concern here
     except ConfigError as exc:
         raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
     if data.get("fingerprint") != config_fingerprint(to_dict(run)):
@@ -226,6 +225,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     from crowdrl.evaluation.report import eval_record
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
     from crowdrl.sim.rng import MAX_SEED
+    from crowdrl.training.config import available_memory, planned_states, planner_bytes
 
     if (checkpoint is None) == (policy is None):
         raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")
@@ -252,6 +252,11 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
+    planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
+    if free is not None and planner > free:
+        raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
+                         f"states per step at {min(episodes, batch)} episodes at once, ~{planner / 2**30:,.1f} GiB, more "
+                         f"than the {free / 2**30:,.1f} GiB of memory available; lower eval.batch")
     net.to(device)
     predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
     if predictor is not None:
