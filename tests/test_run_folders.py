@@ -330,3 +330,38 @@ def test_atomic_writes_leave_the_mode_a_plain_open_would(tmp_path):
     finally:
         os.umask(old)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "plain.json"]  # no temp file left
+
+
+# ----------------------------------------------------------------------------- evaluate.py (defect 8)
+
+EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
+
+
+@pytest.mark.parametrize("args, named", [(["threads=0"], "threads"), (["+eval.episods=5"], "eval.episods"),
+                                         (["+encoder=sarl"], "encoder"), (["env=circle", "env.num_humans=20"],
+                                                                          "env.num_humans")])
+def test_evaluate_py_refuses_bad_threads_and_unread_keys_naming_them(tmp_path, args, named):
+    proc = subprocess.run([*EVALUATE, "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'e'}"],
+                          env=ENV, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and named in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert not (tmp_path / "e" / "eval.json").exists()
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_parameter(finished_run, tmp_path):
+    import torch
+
+    from crowdrl.training.checkpoint import CheckpointError
+    from crowdrl.training.pipeline import evaluate_spec
+
+    data = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=False)
+    name = next(k for k, v in data["net"].items() if v.is_floating_point())
+    data["net"][name] = data["net"][name].clone().fill_(float("nan"))
+    torch.save(data, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match=rf"nan\.pt: the Q network's '{re.escape(name)}' holds \d+ non-finite"):
+        evaluate_spec(checkpoint=tmp_path / "nan.pt", episodes=2)
+    data = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=False)
+    name = next(k for k, v in data["predictor"].items() if v.is_floating_point())
+    data["predictor"][name] = data["predictor"][name].clone().fill_(float("inf"))
+    torch.save(data, tmp_path / "inf.pt")
+    with pytest.raises(CheckpointError, match=rf"inf\.pt: the crowd predictor's '{re.escape(name)}' holds"):
+        evaluate_spec(checkpoint=tmp_path / "inf.pt", episodes=2)

@@ -262,7 +262,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _one_of(p.predictor, "planning.predictor", PREDICTORS)
     _check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
     _check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
-    _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
+    check_threads(run.threads)
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
@@ -419,6 +419,30 @@ def crowd_range(env: EnvConfig) -> tuple[int, int]:
     low = env.num_humans if env.min_humans is None else env.min_humans
     high = env.num_humans if env.max_humans is None else env.max_humans
     return low, high
+
+
+def check_threads(threads: Any, key: str = "threads") -> None:
+    """An integer >= 1 (torch threads), otherwise a :class:`ConfigError` naming ``key``."""
+    _check(isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1, key,
+           f"must be an integer >= 1, got {threads!r}")
+
+
+def unknown_keys(cfg: Any, reference: Any, prefix: str = "") -> list[str]:
+    """The dotted keys of the nested dict ``cfg`` that the nested dict ``reference`` lacks (a key
+    added with ``+key=value`` that nothing reads); below a key whose reference is not a dict, nothing.
+
+    >>> unknown_keys({"eval": {"episods": 5, "seed": 0}, "encoder": {"name": "sarl"}}, {"eval": {"seed": 0}})
+    ['eval.episods', 'encoder']
+    """
+    if not (isinstance(cfg, dict) and isinstance(reference, dict)):
+        return []
+    out = []
+    for key, value in cfg.items():
+        if key not in reference:
+            out.append(f"{prefix}{key}")
+        else:
+            out += unknown_keys(value, reference[key], f"{prefix}{key}.")
+    return out
 
 
 def check_device(device: str, key: str = "device") -> None:

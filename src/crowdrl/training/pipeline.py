@@ -12,7 +12,7 @@ import torch
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json
-from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint
+from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
 from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
@@ -143,8 +143,9 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     trained checkpoint (a run folder or a ``best.pt``).
 
     Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
-    config the code cannot rebuild, weights that do not fit the network of the config, or (given
-    ``fingerprint``) a checkpoint written by a run with another configuration.
+    config the code cannot rebuild, weights that do not fit the network of the config, NaN or
+    infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
+    run with another configuration.
     """
     ckpt = checkpoint_path(path)
     data = load_checkpoint(ckpt, fingerprint)
@@ -163,6 +164,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     except RuntimeError as exc:
         first = str(exc).splitlines()[0]
         raise CheckpointError(f"{ckpt}: the network shape does not match its config ({first})") from None
+    check_finite_weights(net, ckpt, "Q network")
     net.eval()  # noise and dropout off: the greedy policy of the mean network
     return run, net, data
 
@@ -180,6 +182,7 @@ def load_trained_predictor(run: RunConfig, data: dict[str, Any], path: Path | st
         predictor.load_state_dict(data["predictor"])
     except RuntimeError as exc:
         raise CheckpointError(f"{path}: the predictor's weights do not fit ({str(exc).splitlines()[0]})") from None
+    check_finite_weights(predictor, path, "crowd predictor")
     return predictor.eval()
 
 
