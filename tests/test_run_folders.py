@@ -332,6 +332,41 @@ def test_atomic_writes_leave_the_mode_a_plain_open_would(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "plain.json"]  # no temp file left
 
 
+def test_the_raw_simulator_refuses_non_finite_inputs_naming_them():
+    import math
+
+    import torch
+
+    from crowdrl.sim import crowd
+    from crowdrl.sim.config import CrowdConfig
+    from crowdrl.sim.orca import orca_velocities
+    from crowdrl.sim.rng import episode_keys
+    from crowdrl.sim.scenarios import initial_states
+
+    cfg = CrowdConfig()
+    state = initial_states(cfg, episode_keys("train", 0, torch.arange(2)))
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ValueError, match="^robot_velocity holds NaN or infinite"):
+            crowd.step(cfg, state, torch.tensor([[bad, 0.0], [0.0, 0.0]]))
+    with pytest.raises(ValueError, match="^robot_heading holds NaN or infinite"):
+        crowd.step(cfg, state, torch.zeros(2, 2), torch.tensor([0.0, math.nan]))
+    with pytest.raises(ValueError, match=r"^state\.robot_goal holds NaN"):
+        crowd.step(cfg, state.replace(robot_goal=torch.full_like(state.robot_goal, math.nan)), torch.zeros(2, 2))
+    crowd.step(cfg, state, torch.zeros(2, 2))  # finite: fine
+    p = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
+    r = torch.full((1, 3), 0.3)
+    kw = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+    assert orca_velocities(p, torch.zeros_like(p), torch.zeros_like(p), r, r, **kw).isfinite().all()
+    for name in ("positions", "velocities", "pref_velocities"):
+        args = {"positions": p, "velocities": torch.zeros_like(p), "pref_velocities": torch.zeros_like(p)}
+        args[name] = args[name].clone()
+        args[name][0, 1, 0] = math.inf
+        with pytest.raises(ValueError, match=f"^{name} holds NaN or infinite"):
+            orca_velocities(args["positions"], args["velocities"], args["pref_velocities"], r, r, **kw)
+    with pytest.raises(ValueError, match="^max_speed holds NaN"):
+        orca_velocities(p, torch.zeros_like(p), torch.zeros_like(p), r, torch.full((1, 3), math.nan), **kw)
+
+
 # ----------------------------------------------------------------------------- evaluate.py (defect 8)
 
 EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
