@@ -1,6 +1,8 @@
 """Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
-it created; one writer per folder, locked before the first write; a finished run stays finished;
-default folders are unique; seeds stay within 0..2**63-1."""
+it created; one writer per folder (and per reproduce.py out=), locked before the first write; a
+finished run stays finished; default folders are unique; seeds stay within 0..2**63-1; settings
+that would exhaust memory, bad evaluate.py input and non-finite weights or simulator inputs are
+refused by name; JSON records are strict and files get open()'s mode."""
 
 from __future__ import annotations
 
@@ -400,3 +402,55 @@ def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_param
     torch.save(data, tmp_path / "inf.pt")
     with pytest.raises(CheckpointError, match=rf"inf\.pt: the crowd predictor's '{re.escape(name)}' holds"):
         evaluate_spec(checkpoint=tmp_path / "inf.pt", episodes=2)
+
+
+# ----------------------------------------------------------------------------- reproduce.py
+
+
+def _reproduce_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reproduce_script", ROOT / "experiments" / "reproduce.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _plan(reproduce, out: Path, **over):
+    cfg = {"budget": "smoke", "encoders": ["sgd3qn"], "variants": ["egreedy"], "seeds": [0], "train_scenario": "circle",
+           "scenarios": ["circle"], "episodes": 2, "jobs": 1, "launcher": "local", "threads": 1, "reps": 100,
+           "out": str(out), "planning": True, **over}
+    return reproduce.make_plan(cfg)
+
+
+def test_a_second_reproduce_py_on_the_same_out_is_refused_before_it_writes(tmp_path):
+    from crowdrl.training.pipeline import lock_run_dir
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text("{}")  # what the first one wrote already
+    holder = lock_run_dir(out)  # the first reproduce.py, still running
+    before = folder_state(out)
+    try:
+        proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "reproduce.py"), "budget=smoke",
+                               "variants=[egreedy]", "seeds=[0]", "episodes=2", f"out={out}"],
+                              env=ENV, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    finally:
+        holder.close()
+    assert proc.returncode == 2 and "another reproduce.py" in proc.stderr, proc.stderr[-2000:]
+    assert folder_state(out) == before
+
+
+def test_reproduce_py_checks_every_run_and_seed_before_training(tmp_path, monkeypatch):
+    from crowdrl.training import config
+
+    reproduce = _reproduce_module()
+    with pytest.raises(reproduce.PlanError, match=r"^seeds: must be distinct integers in 0\.\.2\*\*63-1"):
+        _plan(reproduce, tmp_path / "o", seeds=[0, 2**63])
+    plan = _plan(reproduce, tmp_path / "o")
+    reproduce.check_runs(plan)
+    monkeypatch.setattr(config, "available_memory", lambda device="cpu": 1000)
+    with pytest.raises(reproduce.PlanError, match=r"^the egreedy runs \(.*\): train\.buffer_size: "):
+        reproduce.check_runs(plan)
+    assert not (tmp_path / "o").exists()
