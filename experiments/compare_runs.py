@@ -28,7 +28,7 @@ import numpy as np
 
 from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
 from crowdrl.evaluation.report import parse_run_group
-from crowdrl.files import atomic_write_bytes
+from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
@@ -141,10 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = compare(groups, scenarios, args.reps, args.last)
     args.out.mkdir(parents=True, exist_ok=True)
     result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows}
-    atomic_write_bytes(args.out / "table.json", json.dumps(result, indent=1).encode())
+    atomic_write_json(args.out / "table.json", result)
     text = markdown(rows, scenarios, groups[0][0], args.reps, args.last)
     atomic_write_bytes(args.out / "table.md", text.encode())
-    print(json.dumps(result, indent=1) if args.json else text)
+    print(dumps_json(result) if args.json else text)
     return 0
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from crowdrl.evaluation.report import parse_run_group
-from crowdrl.training.checkpoint import atomic_write_bytes
+from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.training.pipeline import evaluate_spec
 
 METRICS = ("success_rate", "collision_rate", "timeout_rate", "navigation_time", "average_return")
@@ -52,7 +52,7 @@ def cell(out: Path, what: str, scenario: str, size: int, episodes: int, seed: in
         record, _ = evaluate_spec(checkpoint=what, scenario=scenario, seed=seed, episodes=episodes, num_humans=size)
     record = {**record, "source": what, "num_humans": size, "wall_s": time.perf_counter() - tick}
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, json.dumps(record, indent=1).encode())
+    atomic_write_json(path, record)
     return record
 
 
@@ -114,10 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     result = {"scenario": args.scenario, "episodes": args.episodes, "seed": args.seed, "sizes": args.sizes,
               "groups": {label: runs for label, runs in groups}, "table": table}
     args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(args.out / "table.json", json.dumps(result, indent=1).encode())
+    atomic_write_json(args.out / "table.json", result)
     text = markdown(table, args.sizes, args.scenario, args.episodes, args.seed)
     atomic_write_bytes(args.out / "table.md", text.encode())
-    print(json.dumps(result, indent=1) if args.json else text)
+    print(dumps_json(result) if args.json else text)
     return 0
 
 

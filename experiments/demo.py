@@ -13,7 +13,7 @@ and writes the learning curves, a PNG and a GIF of test case 0 into the run fold
 from __future__ import annotations
 
 import argparse
-import json
+import math
 import os
 import sys
 import time
@@ -38,23 +38,31 @@ def compose_run(overrides: list[str]):
     return cfg, validate(cfg)
 
 
+def default_out(run) -> Path:
+    """``runs/demo-<time>-<scenario>-s<seed>-<uid>``: demos started in the same second never share a folder."""
+    from crowdrl.training.config import run_uid
+
+    return ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}-{run_uid()}")
+
+
 def format_comparison(agent: dict, orca: dict, label: str) -> str:
     rows = [(label, agent), ("ORCA (same cases)", orca)]
     lines = [f"{'policy':<28} {'success':>8} {'collision':>9} {'timeout':>8} {'nav time':>9} {'return':>8}"]
     for name, m in rows:
+        nav = math.nan if m["navigation_time"] is None else m["navigation_time"]  # null: no case reached the goal
         lines.append(f"{name:<28} {m['success_rate']:8.3f} {m['collision_rate']:9.3f} {m['timeout_rate']:8.3f} "
-                     f"{m['navigation_time']:8.2f}s {m['average_return']:8.4f}")
+                     f"{nav:8.2f}s {m['average_return']:8.4f}")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>)")
+    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>-<scenario>-s<seed>-<uid>)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides of conf/config.yaml, e.g. seed=1")
     args = p.parse_args(argv)
     from omegaconf import OmegaConf
 
-    from crowdrl.training import ConfigError
+    from crowdrl.training import CheckpointError, ConfigError
 
     try:
         cfg, run = compose_run(args.overrides)
@@ -63,17 +71,22 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     from crowdrl.evaluation import evaluate_orca
+    from crowdrl.files import atomic_write_json
     from crowdrl.training.factories import crowd_config
     from crowdrl.training import run_training
 
-    out = args.out or ROOT / "runs" / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    from crowdrl.training.run_folder import RunFolderRefused
+
+    out = args.out or default_out(run)
     method = f"{run.encoder.name} + {run.exploration.name}" + (" + planning" if run.planning.enabled else "")
     print(f"training {method} on {run.env.scenario}, preset {run.preset}, "
           f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)
     start = time.perf_counter()
-    summary = run_training(run, out)
+    try:  # config.yaml is written under the folder's lock, once every check has passed
+        summary = run_training(run, out, prepare=lambda: (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg)))
+    except (CheckpointError, RunFolderRefused) as exc:
+        print(f"demo.py: cannot run in {out}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     train_s = time.perf_counter() - start
     agent = summary["test"]["metrics"]
 
@@ -83,7 +96,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"agent": agent, "orca": orca, "beats_orca": agent["success_rate"] > orca["success_rate"],
               "frames": summary["frames"], "updates": summary["updates"], "best_frames": summary["best_frames"],
               "wall_s": train_s, "test_cases": run.train.test_episodes, "test_seed": summary["test"]["test_seed"]}
-    (out / "demo.json").write_text(json.dumps(result, indent=1))
+    atomic_write_json(out / "demo.json", result)
     print()
     print(f"{run.train.test_episodes} {run.env.scenario} test cases (test seed {result['test_seed']}); "
           f"{summary['frames']} frames, {summary['updates']} updates, {train_s / 60:.1f} min incl. validation and test")

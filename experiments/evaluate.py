@@ -25,20 +25,51 @@ os.environ.setdefault("WANDB_MODE", "offline")
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 
+def _register_resolvers() -> None:
+    from crowdrl.training.config import register_resolvers
+
+    register_resolvers()  # ${crowdrl_uid:} in the default eval folder's name
+
+
+_register_resolvers()
+
+
+def check_keys(c: dict, overrides: list[str]) -> None:
+    """Refuse keys that nothing reads, naming them: a misspelt key Hydra lets through when added with
+    ``+`` (``+eval.episods=5``), a group of train.py (``+encoder=sarl``), an ``env.*`` key other than
+    ``env.scenario`` (the crowd size is ``eval.num_humans``). The known keys are those of
+    ``conf/evaluate.yaml`` and of the ``conf/env/`` files."""
+    from crowdrl.training.config import ConfigError, unknown_keys
+
+    known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "evaluate.yaml"))
+    known.pop("defaults", None)
+    known["env"] = {k: None for f in sorted((Path(CONF_DIR) / "env").glob("*.yaml"))
+                    for k in OmegaConf.to_container(OmegaConf.load(f))}
+    bad = unknown_keys(c, known)
+    bad += [key for key in (item.split("=", 1)[0].lstrip("+~") for item in overrides)
+            if key.startswith("env.") and key != "env.scenario"]
+    if bad:
+        raise ConfigError(f"{', '.join(bad)}: not read by evaluate.py (unknown key); allowed: checkpoint, policy, "
+                          f"{', '.join(f'eval.{k}' for k in known['eval'])}, threads, device, env=<scenario> "
+                          f"(the crowd size is eval.num_humans)")
+
+
 @hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     import torch
 
     from crowdrl.evaluation.report import markdown_table, write_records
     from crowdrl.training import CheckpointError, ConfigError
-    from crowdrl.training.config import check_device
+    from crowdrl.training.config import check_device, check_threads
     from crowdrl.training.pipeline import evaluate_spec
 
     out = Path(HydraConfig.get().runtime.output_dir)
     c = OmegaConf.to_container(cfg, resolve=True)
-    try:  # (unknown keys never get here: Hydra refuses them, naming them)
+    try:
+        check_keys(c, list(HydraConfig.get().overrides.task))
         check_device(str(c["device"]))
-        torch.set_num_threads(int(c["threads"]))
+        check_threads(c["threads"])
+        torch.set_num_threads(c["threads"])
         scenario = (c.get("env") or {}).get("scenario")  # env=<name> selects conf/env/<name>.yaml
         e = c["eval"]
         record, traj = evaluate_spec(checkpoint=c["checkpoint"], policy=c["policy"], scenario=scenario, seed=e["seed"],

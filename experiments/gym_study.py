@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gym_intrinsic  # noqa: E402
 
 from crowdrl.evaluation.stats import mean_interval  # noqa: E402
-from crowdrl.files import atomic_write_bytes  # noqa: E402
+from crowdrl.files import atomic_write_bytes, atomic_write_json  # noqa: E402
 
 STABLE = ["--reward-norm", "batch", "--center", "--clip", "5", "--obs-norm"]
 ARMS = {
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 rec = run_arm(arm, seed, args.env, args.frames, args.beta)
                 path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_bytes(path, json.dumps(rec, indent=1, default=str).encode())
+                atomic_write_json(path, rec, default=str)
             records.setdefault(arm, []).append(rec)
             print(f"{arm} s{seed}: first goal at episode {rec['first_terminated_episode']}, "
                   f"{rec['terminated_episodes']} of {rec['episodes']} at the goal, {rec['wall_s']:.0f} s", flush=True)

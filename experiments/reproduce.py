@@ -108,6 +108,7 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     """Validate the settings (each error names its key)."""
     from crowdrl.models import ENCODERS
     from crowdrl.sim.config import SCENARIOS
+    from crowdrl.sim.rng import MAX_SEED
     from crowdrl.training.config import EXPLORATIONS
 
     unknown = sorted(set(cfg) - KEYS)
@@ -140,8 +141,9 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     seeds = cfg["seeds"]
     if isinstance(seeds, (int, str)) or not seeds:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
-    if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
-        raise PlanError(f"seeds: must be distinct integers >= 0, got {seeds}")
+    if (any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED for s in seeds)
+            or len(set(seeds)) != len(seeds)):
+        raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
     planning = cfg.get("planning", True)
     if not isinstance(planning, bool):
         raise PlanError(f"planning: must be true or false, got {planning!r}")
@@ -150,6 +152,43 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
                 train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
                 episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
                 threads=integer("threads", 1), reps=integer("reps", 100), out=Path(cfg["out"]))
+
+
+def check_runs(plan: Plan) -> None:
+    """Validate every method's run configuration (what ``train.py`` will be given, memory bounds
+    included) before anything is trained or written; an error names the method and the key."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from hydra.core.global_hydra import GlobalHydra
+
+    from crowdrl.training.config import ConfigError, RunConfig, register_resolvers, validate
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    register_resolvers()
+    for method in plan.methods:
+        overrides = [*run_overrides(plan, method), f"seed={plan.seeds[0]}"]
+        if GlobalHydra.instance().is_initialized():  # inside main(): Hydra already reads conf/
+            cfg = compose(config_name="config", overrides=overrides)
+        else:
+            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+                cfg = compose(config_name="config", overrides=overrides)
+        try:
+            validate(cfg)
+        except ConfigError as exc:
+            raise PlanError(f"the {method.name} runs ({' '.join(overrides)}): {exc}") from None
+
+
+def lock_out(plan: Plan):
+    """An exclusive lock on ``<out>/.lock`` (released when this process exits, even on a kill): a
+    second reproduce.py on the same ``out=`` is refused before it writes anything."""
+    from crowdrl.training.run_folder import RunFolderBusy
+    from crowdrl.training.pipeline import lock_run_dir
+
+    try:
+        return lock_run_dir(plan.out)
+    except RunFolderBusy:
+        raise PlanError(f"out: {plan.out} is being written by another reproduce.py (it holds {plan.out / '.lock'}); "
+                        f"wait for it to end, or pass another out=<folder>") from None
 
 
 def check_manifest(plan: Plan) -> None:
@@ -165,9 +204,9 @@ def check_manifest(plan: Plan) -> None:
             raise PlanError(f"out: {plan.out} holds results made with other settings ({said}); "
                             f"pass a fresh out=<folder> or delete {plan.out} to start again")
         return
-    from crowdrl.files import atomic_write_bytes
+    from crowdrl.files import atomic_write_json
 
-    atomic_write_bytes(path, json.dumps(want, indent=1).encode())
+    atomic_write_json(path, want)
 
 
 # ----------------------------------------------------------------------------- jobs
@@ -373,11 +412,11 @@ def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) ->
     import csv
     import io
 
-    from crowdrl.files import atomic_write_bytes
+    from crowdrl.files import atomic_write_bytes, atomic_write_json
 
     atomic_write_bytes(plan.out / "table.md", markdown(plan, rows, wall_s).encode())
-    atomic_write_bytes(plan.out / "table.json", json.dumps({"manifest": plan.manifest(), "seeds": list(plan.seeds),
-                                                            "wall_s": wall_s, "rows": rows}, indent=1).encode())
+    atomic_write_json(plan.out / "table.json", {"manifest": plan.manifest(), "seeds": list(plan.seeds),
+                                                "wall_s": wall_s, "rows": rows})
     flat = [{k: v for k, v in r.items() if not k.endswith("_per_seed")} for r in rows]
     fields = list(dict.fromkeys(k for r in flat for k in r))
     buf = io.StringIO()
@@ -425,6 +464,15 @@ def reproduce(plan: Plan) -> dict[str, Any]:
 
     start = time.perf_counter()
     torch.set_num_threads(plan.threads)
+    check_runs(plan)
+    lock = lock_out(plan)  # before the first write: one reproduce.py per out folder
+    try:
+        return _reproduce(plan, start)
+    finally:
+        lock.close()
+
+
+def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
     check_manifest(plan)
     pending = [(m, s) for m in plan.methods for s in plan.seeds
                if not (is_trained(plan.run_dir(m, s)) and all(has_eval(eval_path(plan.run_dir(m, s), sc), plan.episodes)

@@ -8,8 +8,8 @@
 
 from __future__ import annotations
 
+import math
 import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -46,7 +46,8 @@ _register_schema()
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
-    from crowdrl.training.pipeline import RunFolderBusy
+    from crowdrl.training.pipeline import completed_summary
+    from crowdrl.training.run_folder import RunFolderRefused, discard_new_folders
     from crowdrl.training.trainer import NonFiniteError
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -55,17 +56,19 @@ def main(cfg: DictConfig) -> float:
         if run.resume:
             cfg, run = resumed_config(cfg, Path(run.resume), HydraConfig.get().overrides.task)
     except ConfigError as exc:
-        _discard_empty_run_dir(out_dir)
+        discard_new_folders(out_dir)  # only a folder this run created, and only while empty
         print(f"invalid configuration: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     run_dir = Path(run.resume) if run.resume else out_dir
     if run.resume:
-        _discard_empty_run_dir(out_dir)
-    else:
-        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    try:
-        summary = run_training(run, run_dir)
-    except (CheckpointError, RunFolderBusy) as exc:  # refused before anything in the folder changed
+        discard_new_folders(out_dir)
+    status = run_dir / "status.json"
+    complete_status = status.read_bytes() if completed_summary(run_dir) is not None else None
+    try:  # config.yaml, .hydra/ and train.log: written only once every check has passed, under the lock
+        summary = run_training(run, run_dir, prepare=None if run.resume else lambda: _start_run_folder(run_dir, cfg))
+    except (CheckpointError, RunFolderRefused) as exc:  # refused before anything in the folder changed
+        if not run.resume:
+            discard_new_folders(out_dir)
         print(f"cannot run in {run_dir}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     except NonFiniteError as exc:  # status.json says "failed" and why; no eval.json is written
@@ -75,10 +78,30 @@ def main(cfg: DictConfig) -> float:
         print(f"interrupted ({exc}); resume with: python experiments/train.py resume={run_dir}", file=sys.stderr)
         raise SystemExit(130) from None
     m = summary["test"]["metrics"]
+    if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
+        print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
     print(f"run folder: {run_dir.resolve()}")
+    nav = m["navigation_time"]  # null in summary.json when no case reached the goal
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
-          f"nav time {m['navigation_time']:.2f} s  return {m['average_return']:.4f}")
+          f"nav time {math.nan if nav is None else nav:.2f} s  return {m['average_return']:.4f}")
     return float(m["success_rate"])
+
+
+def _start_run_folder(run_dir: Path, cfg: DictConfig) -> None:
+    """The files of a fresh run: ``config.yaml``, Hydra's ``.hydra/`` (what ``hydra.output_subdir``
+    would have written before the checks) and the ``train.log`` handler of the root logger."""
+    import logging
+
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    hydra_dir = run_dir / ".hydra"
+    hydra_dir.mkdir(exist_ok=True)
+    hydra_cfg = HydraConfig.get()
+    (hydra_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (hydra_dir / "hydra.yaml").write_text(OmegaConf.to_yaml(HydraConfig.instance().cfg))
+    (hydra_dir / "overrides.yaml").write_text(OmegaConf.to_yaml(hydra_cfg.overrides.task))
+    handler = logging.FileHandler(run_dir / f"{hydra_cfg.job.name}.log")
+    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    logging.getLogger().addHandler(handler)
 
 
 def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
@@ -98,12 +121,6 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
                           + "; ".join(conflicts))
     saved.resume = str(run_dir)
     return saved, validate(saved)
-
-
-def _discard_empty_run_dir(path: Path) -> None:
-    """Remove a run folder Hydra created if it holds nothing but Hydra's own files."""
-    if path.is_dir() and all(p.name in (".hydra", "train.log") for p in path.iterdir()):
-        shutil.rmtree(path, ignore_errors=True)
 
 
 if __name__ == "__main__":

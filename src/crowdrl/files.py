@@ -1,19 +1,53 @@
-"""Atomic file writes: readers see the old file or the new one, never half of one."""
+"""Atomic file writes (readers see the old file or the new one, never half of one) and strict JSON.
+
+Files written here get the mode a plain ``open(path, "w")`` would give them: an existing file keeps
+its mode, a new one gets ``0o666`` less the umask (usually ``0644``), not ``mkstemp``'s ``0600``.
+JSON is strict (RFC 8259): an undefined metric (NaN, ±inf) is written as ``null``, never as a bare
+``NaN`` that strict parsers reject; ``json.loads`` still reads files written before with ``NaN``.
+"""
 
 from __future__ import annotations
 
+import json
+import math
 import os
-import tempfile
+import uuid
 from pathlib import Path
+from typing import Any, Callable
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
+def finite_or_null(obj: Any) -> Any:
+    """``obj`` with every non-finite float (NaN, ±inf) in nested dicts, lists and tuples as ``None``."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_null(v) for v in obj]
+    return obj
+
+
+def dumps_json(obj: Any, *, indent: int | None = 1, default: Callable[[Any], Any] | None = None,
+               sort_keys: bool = False) -> str:
+    """Strict JSON text of ``obj``: non-finite floats become ``null`` (:func:`finite_or_null`)."""
+    return json.dumps(finite_or_null(obj), indent=indent, default=default, sort_keys=sort_keys, allow_nan=False)
+
+
+def atomic_write_bytes(path: Path | str, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the new one, never half."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp"
     try:
+        mode = os.stat(path).st_mode & 0o7777  # an existing file keeps its mode, as open(path, "w") would
+    except FileNotFoundError:
+        mode = None
+    try:
+        # created by this process with 0o666 less the umask (mkstemp would give 0o600)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         with os.fdopen(fd, "wb") as f:
+            if mode is not None:
+                os.fchmod(f.fileno(), mode)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -24,4 +58,9 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
-__all__ = ["atomic_write_bytes"]
+def atomic_write_json(path: Path | str, obj: Any, *, default: Callable[[Any], Any] | None = None) -> None:
+    """``obj`` as strict JSON (:func:`dumps_json`), written atomically (:func:`atomic_write_bytes`)."""
+    atomic_write_bytes(path, dumps_json(obj, default=default).encode())
+
+
+__all__ = ["atomic_write_bytes", "atomic_write_json", "dumps_json", "finite_or_null"]

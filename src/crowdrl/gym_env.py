@@ -21,7 +21,6 @@ from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
 from crowdrl.sim.scenarios import initial_states
 
 SPLITS = tuple(rng.STREAMS)
-_STREAM_SEED_BOUND = 2**63 - 1  # rng.episode_keys takes any non-negative seed below 2**64
 
 
 class CrowdNavGymEnv(gym.Env):
@@ -83,14 +82,15 @@ class CrowdNavGymEnv(gym.Env):
                 "episode_id": self._episode}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
-            raise ValueError(f"seed must be None or an integer >= 0, got {seed!r}")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                                 or not 0 <= seed <= rng.MAX_SEED):  # never reduced modulo 2**64
+            raise ValueError(f"seed must be None or an integer in 0..2**63-1, got {seed!r}")
         super().reset(seed=seed)
         if seed is not None:
             self._stream_seed = int(seed)
             self._next_episode = 0
         elif self._stream_seed is None:
-            self._stream_seed = int(self.np_random.integers(_STREAM_SEED_BOUND))
+            self._stream_seed = int(self.np_random.integers(rng.MAX_SEED))
             self._next_episode = 0
         episode = self._next_episode
         if options and "episode_id" in options:

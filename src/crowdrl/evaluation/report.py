@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from crowdrl.evaluation.metrics import EpisodeMetrics
-from crowdrl.files import atomic_write_bytes
+from crowdrl.files import atomic_write_bytes, atomic_write_json
 
 # eval.json keys, in table order, and the EpisodeMetrics field each comes from
 REPORT_FIELDS = {
@@ -77,6 +77,8 @@ def eval_record(metrics: EpisodeMetrics, *, scenario: str, seed: int, policy: st
 
 
 def _fmt(value: Any) -> str:
+    if value is None:  # an undefined metric as read back from strict JSON (null)
+        return "–"
     if isinstance(value, float):
         return "–" if math.isnan(value) else f"{value:.4f}" if abs(value) < 1 else f"{value:.3f}"
     return str(value)
@@ -98,7 +100,7 @@ def write_records(folder: Path | str, records: list[dict[str, Any]], stem: str =
     folder = Path(folder)
     payload = records[0] if len(records) == 1 else records
     json_path, csv_path = folder / f"{stem}.json", folder / f"{stem}.csv"
-    atomic_write_bytes(json_path, json.dumps(payload, indent=1).encode())
+    atomic_write_json(json_path, payload)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(records[0]))
     writer.writeheader()

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
-from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.orca import orca_solve, require_finite
 from crowdrl.sim.scenarios import new_human_goals
 from crowdrl.sim.state import CrowdState
 
@@ -130,11 +130,19 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
         robot_velocity: ``[B, 2]`` the robot's velocity during this step (world frame).
         robot_heading: ``[B]`` the robot's heading after the step; defaults to the velocity's
             direction (unchanged when the robot stops).
+
+    Raises ``ValueError`` naming the argument for NaN or infinite ``robot_velocity`` or
+    ``robot_heading`` (and, from the ORCA solver, for a non-finite humans' state).
     """
     dt = cfg.time_step
     B = state.batch_size
     if robot_velocity.shape != (B, 2):
         raise ValueError(f"robot_velocity must be shaped [{B}, 2], got {tuple(robot_velocity.shape)}")
+    # NaN/inf in: a ValueError naming it (not a NaN reward with event "running"); the humans' state is
+    # checked by the ORCA solver's own entry point
+    given = {"robot_velocity": robot_velocity} if robot_heading is None else {"robot_velocity": robot_velocity,
+                                                                             "robot_heading": robot_heading}
+    require_finite(**given, **{"state.robot_position": state.robot_position, "state.robot_goal": state.robot_goal})
     if robot_heading is None:
         speed = torch.linalg.vector_norm(robot_velocity, dim=-1)
         robot_heading = torch.where(

@@ -25,6 +25,7 @@ from torch import Tensor
 Ints = Union[Tensor, np.ndarray, int]  # what the hash runs on: int64 tensors or arrays, or Python ints
 
 _MASK32 = 0xFFFFFFFF
+MAX_SEED = 2**63 - 1  # the largest seed a run, an evaluation or the Gymnasium face accepts (int64, torch.manual_seed)
 STREAMS = {"train": 0x1B873593, "val": 0x68E31DA4, "test": 0x5F3759DF}
 
 

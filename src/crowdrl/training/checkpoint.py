@@ -118,3 +118,13 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
 def _first_line(exc: BaseException) -> str:
     lines = [line for line in str(exc).splitlines() if line.strip()]
     return lines[0] if lines else type(exc).__name__
+
+
+def check_finite_weights(module: torch.nn.Module, path: Path | str, what: str = "network") -> None:
+    """Refuse (:class:`CheckpointError`, naming ``path`` and the first such parameter or buffer) a
+    ``module`` loaded from ``path`` that holds NaN or infinite weights: it would be scored as if fine."""
+    for name, value in module.state_dict().items():
+        if torch.is_tensor(value) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(f"{path}: the {what}'s {name!r} holds {bad} non-finite value(s) (NaN or inf) of "
+                                  f"{value.numel()}; the checkpoint cannot be evaluated")

@@ -21,10 +21,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
+from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
+from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
+EVAL_BATCH = 1000  # episodes stepped at once by the final test (and experiments/evaluate.py's eval.batch)
 EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")
 INTRINSIC = ("icm", "re3")
 LOGGERS = ("wandb", "csv")
@@ -142,16 +145,23 @@ class RunConfig:
     threads: int = 1
     device: str = "cpu"
     resume: str | None = None
+    # never used: kept (null only) so that the config.yaml of older run folders, which hold
+    # ``run_dir: null``, still loads; a value is refused (the folder is hydra.run.dir or --out)
     run_dir: str | None = None
 
 
-def register_resolvers() -> None:
-    """``${crowdrl_uid:}`` for ``conf/``: six random hex digits, the same for every use within one
-    config (run folder names: two runs started in the same second never share a folder)."""
+def run_uid() -> str:
+    """Six random hex digits: the unique part of a default run folder's name."""
     import secrets
 
+    return secrets.token_hex(3)
+
+
+def register_resolvers() -> None:
+    """``${crowdrl_uid:}`` for ``conf/``: :func:`run_uid`, the same for every use within one
+    config (run folder names: two runs started in the same second never share a folder)."""
     if not OmegaConf.has_resolver("crowdrl_uid"):
-        OmegaConf.register_new_resolver("crowdrl_uid", lambda: secrets.token_hex(3), use_cache=True)
+        OmegaConf.register_new_resolver("crowdrl_uid", run_uid, use_cache=True)
 
 
 def _check(cond: bool, key: str, msg: str) -> None:
@@ -190,8 +200,11 @@ def resume_conflicts(current: DictConfig, saved: DictConfig, overrides: list[str
     return conflicts
 
 
-def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
-    """Check a config tree against the schema and the allowed values; return it typed."""
+def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> RunConfig:
+    """Check a config tree against the schema and the allowed values; return it typed.
+
+    With ``resources`` (the default) also what the run would need of this machine's memory
+    (:func:`check_resources`); a checkpoint's stored config is read with ``resources=False``."""
     if isinstance(cfg, RunConfig):
         cfg = OmegaConf.structured(cfg)
     schema = OmegaConf.structured(RunConfig)
@@ -248,13 +261,117 @@ def validate(cfg: DictConfig | dict | RunConfig) -> RunConfig:
     _check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
     _one_of(p.predictor, "planning.predictor", PREDICTORS)
     _check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
-    _check(run.seed >= 0, "seed", f"must be >= 0, got {run.seed}")
-    _check(run.threads >= 1, "threads", f"must be >= 1, got {run.threads}")
+    _check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
+    check_threads(run.threads)
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
+    _check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
+           f"hydra.run.dir=<folder> (train.py), --out <folder> (demo.py) or resume=<folder>")
     check_device(run.device)
+    if resources:
+        check_resources(run)
     return run
+
+
+# Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),
+# the rise of the resident memory's high-water mark (VmHWM) over one OnlinePlanner.plan call divided by
+# the states it expanded (float32, learned predictor, 64 states, depth 2, width 10, N = 10 and N = 64,
+# eager attention kernels: the fallback when compiling fails; the compiled SG-D3QN kernels need about a
+# sixth at N = 10, a twentieth at N = 64), rounded up by ~10 %. An upper estimate, not a measurement.
+PLANNED_STATE_BYTES = {"sgd3qn": (1450, 500), "sarl": (2700, 12), "lstm_rl": (960, 40), "mp_rgl": (780, 42)}
+
+
+def acting_batch(run: RunConfig) -> int:
+    """The most states the run acts on at once: ``train.num_envs`` (collection),
+    ``train.val_episodes`` (validation) or ``min(train.test_episodes, EVAL_BATCH)`` (the test)."""
+    t = run.train
+    return max(t.num_envs, t.val_episodes, min(t.test_episodes, EVAL_BATCH))
+
+
+def planned_states(run: RunConfig, batch: int | None = None) -> int:
+    """States the online planner expands per step for ``batch`` environments (default
+    :func:`acting_batch`): ``width`` per state at each of ``depth`` levels, ``batch·Σ_k width^k``."""
+    p = run.planning
+    batch = acting_batch(run) if batch is None else batch
+    return batch * sum(p.width ** k for k in range(1, p.depth + 1)) if p.enabled else 0
+
+
+def planner_bytes(run: RunConfig, batch: int | None = None) -> int:
+    """Upper estimate of the planner's memory per step (:data:`PLANNED_STATE_BYTES`), which scales
+    with the states it expands and, per state, with the crowd (its largest size, ``env.max_humans``)."""
+    a, b = PLANNED_STATE_BYTES.get(run.encoder.name, PLANNED_STATE_BYTES["sgd3qn"])  # sgd3qn: the largest
+    n = crowd_range(run.env)[1] + 1
+    return planned_states(run, batch) * n * (a + b * n)
+
+
+def transition_bytes(run: RunConfig) -> int:
+    """Bytes of one transition in the replay buffer (``factories.stored_keys``): the robot-centric
+    state and successor (float32, plus the humans' bool mask when the crowd size varies), the
+    action, ``index`` and ``steps_to_next_obs`` (int64), the reward (float32), ``done`` and
+    ``terminated`` (bool), and with the learned predictor the world-frame state and next humans."""
+    low, high = crowd_range(run.env)
+    obs = 4 * (ROBOT_OBS_DIM + HUMAN_OBS_DIM * high) + (high if low < high else 0)
+    out = 2 * obs + 3 * 8 + 4 + 2
+    if run.planning.enabled and run.planning.predictor == "learned":
+        out += 4 * (ROBOT_OBS_DIM + 2 * HUMAN_OBS_DIM * high)
+    return out
+
+
+def buffer_bytes(run: RunConfig) -> int:
+    """Peak memory of the replay buffer: ``train.buffer_size`` transitions (the storage is allocated
+    whole at the first write), and with ``train.save_buffer`` two more copies while a checkpoint is
+    serialised (``torch.save`` into memory, then its bytes)."""
+    return run.train.buffer_size * transition_bytes(run) * (3 if run.train.save_buffer else 1)
+
+
+def available_memory(device: str = "cpu") -> int | None:
+    """Bytes of memory available now: ``MemAvailable`` of ``/proc/meminfo`` (else free pages by
+    ``os.sysconf``) for ``cpu``, the free memory of the CUDA device otherwise; ``None``: unknown."""
+    import os
+
+    if device.startswith("cuda"):
+        import torch
+
+        return int(torch.cuda.mem_get_info(torch.device(device))[0])
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:,.1f} GiB"
+
+
+def check_resources(run: RunConfig) -> None:
+    """Refuse (:class:`ConfigError`, naming the key) a run whose replay buffer (:func:`buffer_bytes`),
+    or whose buffer plus the planner's states per step (:func:`planner_bytes`), would not fit in the
+    memory available now (:func:`available_memory`)."""
+    free = available_memory(run.device)
+    if free is None:
+        return
+    t, p = run.train, run.planning
+    buffer = buffer_bytes(run)
+    copies = " (x3 with train.save_buffer=true: the checkpoint is serialised in memory)" if t.save_buffer else ""
+    _check(buffer <= free, "train.buffer_size",
+           f"{t.buffer_size} transitions of {transition_bytes(run)} bytes need ~{_gib(buffer)}{copies}, more than the "
+           f"{_gib(free)} of memory available on this machine; lower train.buffer_size"
+           + (" or set train.save_buffer=false" if t.save_buffer else ""))
+    planner = planner_bytes(run)
+    _check(planner <= free - buffer, "planning.depth/planning.width",
+           f"the planner expands {planned_states(run)} states per step (B x sum of width^k, k = 1..depth: width "
+           f"{p.width}, depth {p.depth}, B = {acting_batch(run)}, the largest of train.num_envs, train.val_episodes and "
+           f"min(train.test_episodes, {EVAL_BATCH})) of up to {crowd_range(run.env)[1]} humans: ~{_gib(planner)} per "
+           f"step, more than the {_gib(max(free - buffer, 0))} of memory available on this machine next to the replay "
+           f"buffer; lower planning.depth or planning.width")
 
 
 INTRINSIC_OPTIONS = ("beta_schedule", "beta_decay", "reward_norm", "reward_center", "reward_clip", "obs_norm",
@@ -302,6 +419,30 @@ def crowd_range(env: EnvConfig) -> tuple[int, int]:
     low = env.num_humans if env.min_humans is None else env.min_humans
     high = env.num_humans if env.max_humans is None else env.max_humans
     return low, high
+
+
+def check_threads(threads: Any, key: str = "threads") -> None:
+    """An integer >= 1 (torch threads), otherwise a :class:`ConfigError` naming ``key``."""
+    _check(isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1, key,
+           f"must be an integer >= 1, got {threads!r}")
+
+
+def unknown_keys(cfg: Any, reference: Any, prefix: str = "") -> list[str]:
+    """The dotted keys of the nested dict ``cfg`` that the nested dict ``reference`` lacks (a key
+    added with ``+key=value`` that nothing reads); below a key whose reference is not a dict, nothing.
+
+    >>> unknown_keys({"eval": {"episods": 5, "seed": 0}, "encoder": {"name": "sarl"}}, {"eval": {"seed": 0}})
+    ['eval.episods', 'encoder']
+    """
+    if not (isinstance(cfg, dict) and isinstance(reference, dict)):
+        return []
+    out = []
+    for key, value in cfg.items():
+        if key not in reference:
+            out.append(f"{prefix}{key}")
+        else:
+            out += unknown_keys(value, reference[key], f"{prefix}{key}.")
+    return out
 
 
 def check_device(device: str, key: str = "device") -> None:

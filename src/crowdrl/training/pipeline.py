@@ -6,30 +6,50 @@ import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
-from crowdrl.training.checkpoint import CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint
-from crowdrl.training.config import ConfigError, RunConfig, to_dict, validate
+from crowdrl.files import atomic_write_json
+from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
+from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
 
 TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
-EVAL_BATCH = 1000  # episodes stepped at once by evaluation
 
 
-def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None) -> dict[str, Any]:
+def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = None,
+                 prepare: Callable[[], None] | None = None) -> dict[str, Any]:
     """Train (or resume) in ``run_dir``, then test the best policy; returns the summary.
 
-    ``render`` (default ``run.logger.render``) draws the learning curves and test case 0."""
+    Every refusal comes before anything in the folder is written: a folder that holds files but is
+    no run folder (:class:`RunFolderRefused`), one another process writes (:class:`RunFolderBusy`),
+    a checkpoint of another run (:class:`CheckpointError`). A finished run (status ``completed``,
+    every frame trained) returns its ``summary.json`` and changes nothing. ``prepare`` runs once
+    these checks have passed, under the lock and before the first write, for a run that starts
+    from scratch (train.py writes ``config.yaml`` there). ``render`` (default
+    ``run.logger.render``) draws the learning curves and test case 0."""
     run_dir = Path(run_dir)
     render = run.logger.render if render is None else render
-    trainer = Trainer(run, run_dir)
-    trainer.restore()  # a refused resume raises here, before anything in the folder changes
-    lock = lock_run_dir(run_dir)
+    check_run_folder(run_dir)
+    lock = lock_run_dir(run_dir)  # before the first write: one writer per folder
+    try:
+        trainer = Trainer(run, run_dir)
+        resumed = trainer.restore()  # a refused resume raises here, before anything in the folder changes
+        done = completed_summary(run_dir) if trainer.counters.frames >= run.train.total_frames else None
+        if done is not None:
+            trainer.close()
+            lock.close()
+            return done
+        if prepare is not None and resumed is None:
+            prepare()
+    except BaseException:
+        lock.close()
+        raise
     start = time.perf_counter()
     try:
         with stop_signals(trainer):
@@ -39,7 +59,7 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
         trainer.emit({"kind": "test", "frames": trainer.counters.frames,
                       **{f"test/{k}": v for k, v in result["metrics"].items()}})
         trainer.write_status("completed", **summary)
-        atomic_write_bytes(run_dir / "summary.json", json.dumps(summary, indent=1, default=str).encode())
+        atomic_write_json(run_dir / "summary.json", summary, default=str)
     except BaseException as exc:
         trainer.write_status("failed" if not isinstance(exc, KeyboardInterrupt) else "interrupted",
                              error=repr(exc), frames=trainer.counters.frames)
@@ -70,8 +90,18 @@ def lock_run_dir(run_dir: Path):
     return handle
 
 
-class RunFolderBusy(RuntimeError):
-    """Another process holds the run folder."""
+def completed_summary(run_dir: Path | str) -> dict[str, Any] | None:
+    """The ``summary.json`` of a finished run (``status.json`` says ``completed``), else ``None``."""
+    run_dir = Path(run_dir)
+    try:
+        status = json.loads((run_dir / "status.json").read_text())
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(status, dict) and status.get("state") == "completed" and isinstance(summary, dict)
+            and "test" in summary):
+        return None
+    return summary
 
 
 @contextmanager
@@ -113,8 +143,9 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     trained checkpoint (a run folder or a ``best.pt``).
 
     Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
-    config the code cannot rebuild, weights that do not fit the network of the config, or (given
-    ``fingerprint``) a checkpoint written by a run with another configuration.
+    config the code cannot rebuild, weights that do not fit the network of the config, NaN or
+    infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
+    run with another configuration.
     """
     ckpt = checkpoint_path(path)
     data = load_checkpoint(ckpt, fingerprint)
@@ -122,7 +153,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
         raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
                               f"checkpoints/best.pt")
     try:
-        run = validate(data["config"])
+        run = validate(data["config"], resources=False)  # what training needed is no concern here
     except ConfigError as exc:
         raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
     if data.get("fingerprint") != config_fingerprint(to_dict(run)):
@@ -133,6 +164,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     except RuntimeError as exc:
         first = str(exc).splitlines()[0]
         raise CheckpointError(f"{ckpt}: the network shape does not match its config ({first})") from None
+    check_finite_weights(net, ckpt, "Q network")
     net.eval()  # noise and dropout off: the greedy policy of the mean network
     return run, net, data
 
@@ -150,6 +182,7 @@ def load_trained_predictor(run: RunConfig, data: dict[str, Any], path: Path | st
         predictor.load_state_dict(data["predictor"])
     except RuntimeError as exc:
         raise CheckpointError(f"{path}: the predictor's weights do not fit ({str(exc).splitlines()[0]})") from None
+    check_finite_weights(predictor, path, "crowd predictor")
     return predictor.eval()
 
 
@@ -176,7 +209,7 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
 
         plot_trajectory(traj, run_dir / f"test_case{record_episode}.png", title=f"test case {record_episode}")
         animate_trajectory(traj, run_dir / f"test_case{record_episode}.gif")
-    atomic_write_bytes(run_dir / "eval.json", json.dumps(out, indent=1).encode())
+    atomic_write_json(run_dir / "eval.json", out)
     return out
 
 
@@ -194,6 +227,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
+    from crowdrl.sim.rng import MAX_SEED
+    from crowdrl.training.config import available_memory, planned_states, planner_bytes
 
     if (checkpoint is None) == (policy is None):
         raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")
@@ -204,6 +239,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     for name, value, low in (("eval.episodes", episodes, 1), ("eval.seed", seed, 0), ("eval.batch", batch, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
+    if seed > MAX_SEED:  # never reduced modulo 2**64 (seed 5 + 2**64 would replay seed 5's cases)
+        raise ValueError(f"eval.seed: must lie in 0..2**63-1 ({MAX_SEED}), got {seed}")
     if num_humans is not None and not (isinstance(num_humans, int) and not isinstance(num_humans, bool)
                                        and 1 <= num_humans <= MAX_HUMANS):
         raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
@@ -218,6 +255,11 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
+    planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
+    if free is not None and planner > free:
+        raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
+                         f"states per step at {min(episodes, batch)} episodes at once, ~{planner / 2**30:,.1f} GiB, more "
+                         f"than the {free / 2**30:,.1f} GiB of memory available; lower eval.batch")
     net.to(device)
     predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
     if predictor is not None:

@@ -11,7 +11,6 @@ episodes every ``val_every_frames`` frames (the best policy is kept), checkpoint
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -26,8 +25,8 @@ from crowdrl.exploration.dropout import set_dropout_p
 from crowdrl.exploration.noisy import noise_disabled, reset_noise
 from crowdrl.exploration.schedule import linear_schedule
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
-from crowdrl.training.checkpoint import (CheckpointError, atomic_write_bytes, config_fingerprint, load_checkpoint,
-                                         save_checkpoint)
+from crowdrl.files import atomic_write_json
+from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, to_dict
 from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
                                         make_optimizer, make_predictor_of, obs_keys, stored_keys)
@@ -371,8 +370,7 @@ class Trainer:
 
     def write_status(self, state: str, **info: Any) -> None:
         """Atomically rewrite ``status.json``: ``{"state": state, **info}``."""
-        atomic_write_bytes(self.dir / "status.json",
-                           json.dumps({"state": state, **info}, indent=1, default=str).encode())
+        atomic_write_json(self.dir / "status.json", {"state": state, **info}, default=str)
 
     def close(self) -> None:
         if self.log is not None:
