@@ -12,7 +12,7 @@ from torch._inductor.exc import InductorError
 
 
 # Inductor's C++ wrapper: the compiled graph's kernel calls are made from C++ rather than a
-# generated Python function: ~2-6 ms less per D3QN update in two scratch bench_train.py pairs (README).
+# generated Python function: ~2-6 ms less per D3QN update in paired bench_train.py runs on the 2-core CPU.
 CPP_WRAPPER: dict[str, Any] = {"cpp_wrapper": True}
 
 
