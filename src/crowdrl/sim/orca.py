@@ -236,54 +236,61 @@ def _lines_t(
     )
 
 
+def _per_agent(t: Tensor, N: int) -> Tensor:
+    """Edge attribute ``t`` (``[B, E]`` or ``[B, E, 2]``) for each of the ``A = B*N`` agents of the
+    scenes: ``[E, A]`` or ``[2, E, A]`` (contiguous, agents innermost)."""
+    B, E = t.shape[:2]
+    if t.dim() == 2:
+        return t.t().unsqueeze(-1).expand(E, B, N).reshape(E, B * N)
+    return t.permute(2, 1, 0).unsqueeze(-1).expand(2, E, B, N).reshape(2, E, B * N)
+
+
 def _obstacle_neighbor_table(
     positions: Tensor, radius: Tensor, max_speed: Tensor, mask: Tensor | None, edges: ObstacleEdges,
     time_horizon_obst: float,
 ) -> tuple[Tensor, Tensor]:
-    """RVO2's ``computeObstacleNeighbors`` for every agent: edge indices ``[B, N, O]`` into ``edges``
-    and their validity, nearest first, ``O`` the largest neighbour count.
+    """RVO2's ``computeObstacleNeighbors`` for every agent: the edge indices ``[O, A]`` (into its
+    scene's ``E`` edges) of each agent's obstacle neighbours, nearest first, and their validity,
+    ``O`` the largest neighbour count.
 
     An edge is a neighbour when the agent is strictly right of its line (it sees the edge's outer
     side) and the squared point-segment distance is below ``(time_horizon_obst*max_speed + radius)**2``;
     the kd-tree query's pruning is applied too, and equal distances keep the query's visiting order
     (at each tree node: the subtree on the agent's side, the node, then the other subtree)."""
     B, N, _ = positions.shape
-    E = edges.num_edges
-    D = edges.ancestors.shape[-1]
-    p = positions.unsqueeze(2)  # [B, N, 1, 2]
-    a, b = edges.start.unsqueeze(1), edges.end.unsqueeze(1)  # [B, 1, E, 2]
-    ex, ey = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    left_of = _det(a[..., 0] - p[..., 0], a[..., 1] - p[..., 1], ex, ey)  # leftOf(a, b, p): [B, N, E]
+    A, E, D = B * N, edges.num_edges, edges.ancestors.shape[-1]
+    device = positions.device
+    a, b = _per_agent(edges.start, N), _per_agent(edges.end, N)  # [2, E, A]
+    pos = positions.reshape(A, 2).t()
+    ex, ey = b[0] - a[0], b[1] - a[1]
+    left_of = _det(a[0] - pos[0], a[1] - pos[1], ex, ey)  # RVO2's leftOf(start, end, position)
     e_sq = ex * ex + ey * ey
     line_sq = left_of * left_of / e_sq
-    tho = torch.tensor(time_horizon_obst, dtype=positions.dtype, device=positions.device)
-    reach = tho * max_speed + radius
-    range_sq = (reach * reach).unsqueeze(-1)  # [B, N, 1]
+    tho = torch.tensor(time_horizon_obst, dtype=positions.dtype, device=device)
+    reach = tho * max_speed.reshape(A) + radius.reshape(A)
+    range_sq = reach * reach
     # Agent::insertObstacleNeighbor's point-segment distance
-    apx, apy = p[..., 0] - a[..., 0], p[..., 1] - a[..., 1]
+    apx, apy = pos[0] - a[0], pos[1] - a[1]
     r = (apx * ex + apy * ey) / e_sq
-    bpx, bpy = p[..., 0] - b[..., 0], p[..., 1] - b[..., 1]
-    fx, fy = p[..., 0] - (a[..., 0] + r * ex), p[..., 1] - (a[..., 1] + r * ey)
-    dist_sq = torch.where(r < 0, apx * apx + apy * apy, torch.where(r > 1, bpx * bpx + bpy * bpy, fx * fx + fy * fy))
-    near_ok = torch.ones_like(left_of, dtype=torch.bool)
-    key = torch.zeros_like(left_of, dtype=torch.long)
-    if D > 0:
-        idx = edges.ancestors.reshape(B, 1, E * D).expand(B, N, E * D)
-        anc_left = left_of.gather(2, idx).view(B, N, E, D)
-        anc_close = line_sq.gather(2, idx).view(B, N, E, D) < range_sq.unsqueeze(-1)
-        near = (anc_left >= 0) == edges.in_left.unsqueeze(1)
-        deep = (torch.arange(D, device=positions.device) < edges.depth.unsqueeze(-1)).unsqueeze(1)
-        near_ok = (~deep | near | anc_close).all(-1)  # the query reaches the edge's node
-        digit = torch.where(deep, torch.where(near, 0, 2), 1)
-        key = (digit * 3 ** torch.arange(D - 1, -1, -1, device=positions.device)).sum(-1)
-    found = edges.valid.unsqueeze(1) & near_ok & (left_of < 0) & (line_sq < range_sq) & (dist_sq < range_sq)
+    bpx, bpy = pos[0] - b[0], pos[1] - b[1]
+    fx, fy = pos[0] - (a[0] + r * ex), pos[1] - (a[1] + r * ey)
+    dist_sq = _select(r < 0, apx * apx + apy * apy, _select(r > 1, bpx * bpx + bpy * bpy, fx * fx + fy * fy))
+    found = _per_agent(edges.valid, N) & (left_of < 0) & (line_sq < range_sq) & (dist_sq < range_sq)
     if mask is not None:
-        found = found & mask.unsqueeze(-1)
-    visit = torch.sort(key, dim=-1).indices
-    d = torch.where(found, dist_sq, torch.full((), float("inf"), dtype=dist_sq.dtype, device=dist_sq.device))
-    sorted_d, by_dist = torch.sort(d.gather(-1, visit), dim=-1, stable=True)
-    O = int(found.sum(-1).max()) if found.numel() else 0
-    return visit.gather(-1, by_dist)[..., :O], torch.isfinite(sorted_d[..., :O])
+        found &= mask.reshape(A)
+    key = torch.zeros(E, A, dtype=torch.long, device=device)
+    depth = _per_agent(edges.depth, N)
+    for k in range(D):  # the query reaches the edge's node, and its visiting-order key (base 3)
+        anc = _per_agent(edges.ancestors[..., k], N)
+        near = (left_of.gather(0, anc) >= 0) == _per_agent(edges.in_left[..., k], N)
+        deep = depth > k
+        found &= ~deep | near | (line_sq.gather(0, anc) < range_sq)
+        key = key * 3 + 1 + deep * (1 - 2 * near.long())
+    visit = torch.sort(key, dim=0).indices
+    d = _select(found, dist_sq, float("inf"))
+    sorted_d, by_dist = torch.sort(d.gather(0, visit), dim=0, stable=True)
+    O = int(found.sum(0).max()) if found.numel() else 0
+    return visit.gather(0, by_dist[:O]), torch.isfinite(sorted_d[:O])
 
 
 def _obstacle_line_math(r1x, r1y, r2x, r2y, ex, ey, ux, uy, pvx, pvy, nvx, nvy, convex1, convex2,
@@ -381,26 +388,21 @@ def _obstacle_line_math(r1x, r1y, r2x, r2y, ex, ey, ux, uy, pvx, pvy, nvx, nvy, 
 
 
 def _obstacle_lines_t(
-    positions: Tensor, velocities: Tensor, radius: Tensor, edges: ObstacleEdges, index: Tensor, found: Tensor,
+    positions: Tensor, velocities: Tensor, radius: Tensor, edges: ObstacleEdges, slot: Tensor, found: Tensor,
     time_horizon_obst: float,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Obstacle ORCA lines ``[O, A]`` of the neighbour edges ``index`` (``[B, N, O]``) and which are
-    kept: RVO2's lines, minus those of edges "already covered" by earlier (nearer) obstacle lines.
+    """Obstacle ORCA lines ``[O, A]`` of the neighbour edges ``slot`` (``[O, A]``, from
+    :func:`_obstacle_neighbor_table`) and which are kept: RVO2's lines, minus those of edges
+    "already covered" by earlier (nearer) obstacle lines.
 
     The covered test is sequential over the ``O`` slots (the padded largest neighbour count): a
     Python loop over slots in distance order, each iteration vectorised over all agents."""
-    B, N, O = index.shape
-    A = B * N
-    E = edges.num_edges
-
-    def take(t: Tensor) -> Tensor:  # [B, E, ...] -> [..., O, A]
-        shape = (B, N, E) + t.shape[2:]
-        got = t.unsqueeze(1).expand(shape).gather(2, index.view(B, N, O, *([1] * (t.dim() - 2))).expand(
-            (B, N, O) + t.shape[2:]))
-        return got.permute(*range(3, got.dim()), 2, 0, 1).reshape(t.shape[2:] + (O, A))
-
+    O, A = slot.shape
+    N = positions.shape[1]
+    slot2 = slot.unsqueeze(0).expand(2, O, A)
+    take = lambda t: _per_agent(t, N).gather(-2, slot if t.dim() == 2 else slot2)  # noqa: E731
     a, b, u, pv, nv = (take(t) for t in (edges.start, edges.end, edges.direction, edges.prev_direction,
-                                           edges.next_direction))
+                                         edges.next_direction))
     pos = positions.reshape(A, 2).t()
     vel = velocities.reshape(A, 2).t()
     r1x, r1y = a[0] - pos[0], a[1] - pos[1]
@@ -412,21 +414,20 @@ def _obstacle_lines_t(
         r1x, r1y, r2x, r2y, b[0] - a[0], b[1] - a[1], u[0], u[1], pv[0], pv[1], nv[0], nv[1],
         take(edges.start_convex), take(edges.end_convex), vel[0], vel[1], rad, inv_tho,
     )
-    has = has & found.permute(2, 0, 1).reshape(O, A)
-    # covered[j, o]: both ends of edge o are beyond line j by the radius (up to RVO_EPSILON)
+    has &= found
+    # covers[j, o]: both ends of edge o are beyond line j by the radius (up to RVO_EPSILON)
     ri = inv_tho * rad
-    ends = []
+    covers = None
     for rx_, ry_ in ((r1x, r1y), (r2x, r2y)):
         gx = inv_tho * rx_.unsqueeze(0) - qx.unsqueeze(1)
         gy = inv_tho * ry_.unsqueeze(0) - qy.unsqueeze(1)
-        ends.append(_det(gx, gy, dx.unsqueeze(1), dy.unsqueeze(1)) - ri >= -RVO_EPSILON)
-    covers = ends[0] & ends[1]
+        beyond = _det(gx, gy, dx.unsqueeze(1), dy.unsqueeze(1)) - ri >= -RVO_EPSILON
+        covers = beyond if covers is None else covers & beyond
     kept = has.clone()
     for o in range(1, O):
         kept[o] &= ~(covers[:o, o] & kept[:o]).any(0)
-    one_x = torch.ones((), dtype=dx.dtype, device=dx.device)
-    dx, dy = torch.where(kept, dx, one_x), torch.where(kept, dy, 0 * one_x)  # harmless where not kept
-    qx, qy = torch.where(kept, qx, 0 * one_x), torch.where(kept, qy, 0 * one_x)
+    dx, dy = _select(kept, dx, 1.0), _select(kept, dy, 0.0)  # harmless where not kept
+    qx, qy = _select(kept, qx, 0.0), _select(kept, qy, 0.0)
     return dx, dy, qx, qy, kept
 
 
@@ -501,8 +502,9 @@ def _lp3_t(
     Obstacle lines are hard constraints: every projected program keeps them as they are (all of
     them, also for a line ``i < n_obst``) and only the later agent lines ``j < i`` are projected."""
     L = dx.shape[0]
-    # Projected lines for every (j, i) with j < i: [j, i, M].
-    dxi, dyi, qxi, qyi = (t.unsqueeze(0) for t in (dx, dy, qx, qy))
+    i0 = int(begin.min())  # lines i < i0 are never violated in the loop below: no projected program
+    # Projected lines for every (j, i) with j < i, i >= i0: [j, i - i0, M].
+    dxi, dyi, qxi, qyi = (t[i0:].unsqueeze(0) for t in (dx, dy, qx, qy))
     dxj, dyj, qxj, qyj = (t.unsqueeze(1) for t in (dx, dy, qx, qy))
     determinant = _det(dxi, dyi, dxj, dyj)
     parallel = torch.abs(determinant) <= RVO_EPSILON
@@ -517,8 +519,8 @@ def _lp3_t(
     inv_dlen = 1.0 / dlen
     pdx = ddx * inv_dlen
     pdy = ddy * inv_dlen
-    earlier = torch.ones(L, L, dtype=torch.bool, device=dx.device).triu(1).unsqueeze(-1)  # j < i
-    pkeep = earlier & keep.unsqueeze(0) & keep.unsqueeze(1) & ~(parallel & same_dir)
+    earlier = torch.ones(L, L, dtype=torch.bool, device=dx.device).triu(1)[:, i0:].unsqueeze(-1)  # j < i
+    pkeep = earlier & keep[i0:].unsqueeze(0) & keep.unsqueeze(1) & ~(parallel & same_dir)
     if n_obst > 0:  # rows j < n_obst: the obstacle line j itself, for every i
         O = n_obst
         shape = (O,) + pdx.shape[1:]
@@ -527,18 +529,18 @@ def _lp3_t(
         pkeep = torch.cat((keep[:O].unsqueeze(1).expand(shape), pkeep[O:]), 0)
 
     # Direction-optimising LP2 for each i, all at once: optimise towards (-dir_i.y, dir_i.x).
-    opt_x, opt_y = -dy, dx  # [i, M]
+    opt_x, opt_y = -dy[i0:], dx[i0:]  # [i - i0, M]
     r = radius.unsqueeze(0)
     cx, cy, cok = _lp1_candidates_t(pdx, pdy, px_, py_, pkeep, r, opt_x, opt_y, direction_opt=True)
     sol_x, sol_y, sol_fail, _ = _lp2_scan_t(pdx, pdy, px_, py_, pkeep, cx, cy, cok, opt_x * r, opt_y * r)
 
     distance = torch.zeros_like(rx)
-    for i in range(L):
+    for i in range(i0, L):
         violation = _det(dx[i], dy[i], qx[i] - rx, qy[i] - ry)
         active = keep[i] & (begin <= i) & (violation > distance)
-        take = active & ~sol_fail[i]
-        rx = torch.where(take, sol_x[i], rx)
-        ry = torch.where(take, sol_y[i], ry)
+        take = active & ~sol_fail[i - i0]
+        rx = torch.where(take, sol_x[i - i0], rx)
+        ry = torch.where(take, sol_y[i - i0], ry)
         new_distance = _det(dx[i], dy[i], qx[i] - rx, qy[i] - ry)
         distance = torch.where(active, new_distance, distance)
     return rx, ry
@@ -610,7 +612,7 @@ def orca_solve(
     O = 0
     if edges is not None:
         index, found = _obstacle_neighbor_table(positions, radius, max_speed, mask, edges, tho)
-        O = index.shape[-1]
+        O = index.shape[0]
         if O > 0:
             odx, ody, oqx, oqy, okeep = _obstacle_lines_t(positions, velocities, radius, edges, index, found, tho)
             n_obst_lines = okeep.sum(0).view(B, N)
