@@ -141,7 +141,7 @@ def random_obstacle_scene(rng: np.random.Generator, kind: str) -> dict[str, np.n
         d, n = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
         if rng.random() < 0.5:
             w = rng.uniform(1, 3)
-            polys = [box((g / 2 + w / 2) * d, w, rng.uniform(0.3, 2), a), box(-(g / 2 + w / 2) * d, w, rng.uniform(0.3, 2), a)]
+            polys = [box(side * (g / 2 + w / 2) * d, w, rng.uniform(0.3, 2), a) for side in (1, -1)]
         else:
             polys = [np.array([g / 2 * d, (g / 2 + rng.uniform(1, 4)) * d]),
                      np.array([-(g / 2 + rng.uniform(1, 4)) * d, -g / 2 * d])]

@@ -57,7 +57,14 @@ import torch
 from torch import Tensor
 
 from crowdrl.sim.obstacles import ObstacleEdges
-from crowdrl.sim.orca import RVO_EPSILON, OrcaSolution, _check_inputs, _line_math, _obstacle_line_math, prepare_obstacles
+from crowdrl.sim.orca import (
+    RVO_EPSILON,
+    OrcaSolution,
+    _check_inputs,
+    _line_math,
+    _obstacle_line_math,
+    prepare_obstacles,
+)
 
 __all__ = ["compiled_orca_solve", "clear_compiled_cache", "INDUCTOR_OPTIONS"]
 

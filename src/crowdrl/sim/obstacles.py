@@ -91,9 +91,12 @@ def _check_polygons(obstacles: Tensor, obstacle_mask: Tensor | None) -> Tensor:
         raise TypeError(f"obstacles must be a floating tensor, got {obstacles.dtype}")
     if obstacle_mask is None:
         obstacle_mask = torch.ones(obstacles.shape[:3], dtype=torch.bool, device=obstacles.device)
-    elif not isinstance(obstacle_mask, Tensor) or obstacle_mask.dtype != torch.bool or obstacle_mask.shape != obstacles.shape[:3]:
-        got = f"{obstacle_mask.dtype} {tuple(obstacle_mask.shape)}" if isinstance(obstacle_mask, Tensor) else type(obstacle_mask).__name__
-        raise ValueError(f"obstacle_mask must be a bool tensor shaped {tuple(obstacles.shape[:3])} ([B, P, V]), got {got}")
+    elif (not isinstance(obstacle_mask, Tensor) or obstacle_mask.dtype != torch.bool
+          or obstacle_mask.shape != obstacles.shape[:3]):
+        got = (f"{obstacle_mask.dtype} {tuple(obstacle_mask.shape)}" if isinstance(obstacle_mask, Tensor)
+               else type(obstacle_mask).__name__)
+        raise ValueError(f"obstacle_mask must be a bool tensor shaped {tuple(obstacles.shape[:3])} ([B, P, V]), "
+                         f"got {got}")
     elif obstacle_mask.device != obstacles.device:
         raise ValueError(f"obstacle_mask is on {obstacle_mask.device} but obstacles is on {obstacles.device}")
     m = obstacle_mask
@@ -107,7 +110,7 @@ def _check_polygons(obstacles: Tensor, obstacle_mask: Tensor | None) -> Tensor:
     if bool((~torch.isfinite(obstacles).all(-1) & m).any()):
         raise ValueError(f"obstacles: {_where_polygon((~torch.isfinite(obstacles).all(-1) & m).any(-1))} has a "
                          "NaN or infinite vertex")
-    v = torch.where(m.unsqueeze(-1), obstacles, torch.zeros((), dtype=obstacles.dtype, device=obstacles.device)).double()
+    v = obstacles.double().masked_fill(~m.unsqueeze(-1), 0.0)
     k = torch.arange(obstacles.shape[2], device=obstacles.device)
     nxt = torch.where(k + 1 < n.unsqueeze(-1), k + 1, 0)  # [B, P, V]
     w = v.gather(2, nxt.unsqueeze(-1).expand_as(v))
@@ -119,8 +122,10 @@ def _check_polygons(obstacles: Tensor, obstacle_mask: Tensor | None) -> Tensor:
     cw = (n >= 3) & ~(area2 > 0)
     if bool(cw.any()):
         b, p = (int(i) for i in cw.nonzero()[0])
-        raise ValueError(f"obstacles: polygon (b={b}, p={p}) is clockwise (signed area {0.5 * float(area2[b, p]):.6g}); "
-                         "a solid polygon (3 or more vertices) must list its vertices counter-clockwise, as in RVO2")
+        area = 0.5 * float(area2[b, p])
+        what = f"is clockwise (signed area {area:.6g})" if area < 0 else "has zero area"
+        raise ValueError(f"obstacles: polygon (b={b}, p={p}) {what}; a solid polygon (3 or more vertices) must "
+                         "list its vertices counter-clockwise, as in RVO2")
     return m
 
 
