@@ -96,6 +96,32 @@ def test_fresh_obstacle_scenes_agree_with_rvo2(kind, tho):
     assert int((s32.lp_infeasible[mask] & (n_lines > 0)).sum()) >= 5
 
 
+def test_obstacle_line_counts_match_rvo2():
+    """Per agent, the obstacle lines plus the agent lines are RVO2's ORCA lines (its numObstLines:
+    the covered, ignored and foreign-leg edges are skipped as RVO2 skips them)."""
+    pyrvo = pytest.importorskip("pyrvo")
+    gen = np.random.default_rng(2024)
+    scenes = [random_obstacle_scene(gen, kind) for kind in OBSTACLE_KINDS for _ in range(20)]
+    sol, _ = _solve(scenes, torch.float32, 3.0)
+    checked = 0
+    for b, s in enumerate(scenes):
+        sim = pyrvo.RVOSimulator(PARAMS["time_step"], PARAMS["neighbor_dist"], PARAMS["max_neighbors"],
+                                 PARAMS["time_horizon"], 3.0, 0.3, 1.0)
+        for polygon in s["obstacles"]:
+            sim.add_obstacle([tuple(map(float, v)) for v in polygon])
+        sim.process_obstacles()
+        for p, v, r, m, pv in zip(s["positions"], s["velocities"], s["radius"], s["max_speed"], s["pref_velocities"]):
+            i = sim.add_agent(tuple(map(float, p)), PARAMS["neighbor_dist"], PARAMS["max_neighbors"],
+                              PARAMS["time_horizon"], 3.0, float(r), float(m), tuple(map(float, v)))
+            sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
+        sim.do_step()
+        for i in range(len(s["positions"])):
+            total = int(sol.num_obstacle_lines[b, i] + sol.num_neighbors[b, i])
+            assert total == sim.get_agent_num_orca_lines(i), (b, i)
+            checked += 1
+    assert checked > 300 and int(sol.num_obstacle_lines.sum()) > 300
+
+
 def test_obstacle_scenes_split_edges_like_rvo2():
     """process_obstacles makes the edges RVO2's processObstacles makes (split ones included)."""
     pyrvo = pytest.importorskip("pyrvo")

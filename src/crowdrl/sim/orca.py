@@ -611,10 +611,10 @@ def orca_solve(
     n_obst_lines = None
     O = 0
     if edges is not None:
-        index, found = _obstacle_neighbor_table(positions, radius, max_speed, mask, edges, tho)
-        O = index.shape[0]
+        slot, found = _obstacle_neighbor_table(positions, radius, max_speed, mask, edges, tho)
+        O = slot.shape[0]
         if O > 0:
-            odx, ody, oqx, oqy, okeep = _obstacle_lines_t(positions, velocities, radius, edges, index, found, tho)
+            odx, ody, oqx, oqy, okeep = _obstacle_lines_t(positions, velocities, radius, edges, slot, found, tho)
             n_obst_lines = okeep.sum(0).view(B, N)
         else:
             n_obst_lines = torch.zeros(B, N, dtype=torch.long, device=positions.device)
