@@ -171,3 +171,15 @@ def test_compiled_matches_eager_among_walls(monkeypatch):
         lines += int(ref.num_obstacle_lines.sum())
         fallback += int((ref.lp_infeasible & (ref.num_obstacle_lines > 0)).sum())
     assert lines > 30 and fallback > 3, (lines, fallback)
+
+
+@pytest.mark.slow
+def test_compiled_grows_its_obstacle_slots(monkeypatch):
+    """Agents inside a U of three walls see three edges, one more than the 2 slots first compiled:
+    the call is computed again with 4 slots (a second compilation) and agrees with eager."""
+    monkeypatch.setattr(fast, "OBSTACLE_SLOTS", 2)
+    monkeypatch.setattr(fast, "_SLOTS", {})
+    args, mask = _scene(7, 0.8)
+    u = torch.tensor([[[-1.5, -1.5], [1.5, -1.5]], [[1.5, -1.5], [1.5, 1.5]], [[-1.5, 1.5], [-1.5, -1.5]]])
+    _assert_agree_obstacles(args, mask, u.expand(B, 3, 2, 2), tho=5.0)
+    assert list(fast._SLOTS.values()) == [4]
