@@ -3,13 +3,14 @@
 Compiling costs minutes with a cold inductor cache (the graph grows with the number of ORCA
 lines), so the default tests share ONE small static configuration (B=8 scenes of N=4 agents,
 always with a presence mask, default ORCA parameters: about a minute to compile on a 2-core
-CPU); the crowd-sized configuration is ``slow``.
+CPU); the crowd-sized configuration and the obstacle ones are ``slow``.
 """
 
 from __future__ import annotations
 
 import gzip
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -131,3 +132,54 @@ def test_compiled_matches_eager_on_crowd_batch():
         assert float((got.velocities - ref.velocities).norm(dim=-1).max()) <= 1e-5
         assert torch.equal(got.lp_infeasible, ref.lp_infeasible)
         pos, vel = pos + ref.velocities * cfg.time_step, ref.velocities
+
+
+# --------------------------------------------------------------------------- obstacles
+def _walls(seed: int, box: float, n_walls: int = 2, dtype=torch.float32) -> torch.Tensor:
+    """``n_walls`` random wall segments per scene through the crowd: ``[B, n_walls, 2, 2]``."""
+    g = torch.Generator().manual_seed(1000 + seed)
+    c = (torch.rand(B, n_walls, 2, generator=g) * 2 - 1) * box
+    ang = torch.rand(B, n_walls, generator=g) * math.pi
+    d = torch.stack((ang.cos(), ang.sin()), -1) * (0.5 + 1.5 * torch.rand(B, n_walls, 1, generator=g))
+    return torch.stack((c - d, c + d), 2).to(dtype)
+
+
+def _assert_agree_obstacles(args, mask, obstacles, tho=2.0):
+    kw = dict(mask=mask, obstacles=obstacles, time_horizon_obst=tho, **PARAMS)
+    ref = orca_solve(*args, **kw)
+    got = fast.compiled_orca_solve(*args, **kw)
+    dv = (got.velocities - ref.velocities).norm(dim=-1)
+    assert float(dv.max()) <= 1e-5, f"max |dv| {float(dv.max()):.3g}"
+    for field in ("lp_infeasible", "num_neighbors", "num_obstacle_lines"):
+        assert torch.equal(getattr(got, field), getattr(ref, field)), field
+    return ref
+
+
+@pytest.mark.slow
+def test_compiled_matches_eager_among_walls(monkeypatch):
+    """Two walls per scene (B=8, N=4, 2 obstacle slots), raw polygons and processed ObstacleEdges;
+    the scenes exercise obstacle lines and the 3-D fallback. Slow: its two graphs take about 8 min
+    to compile on a loaded 2-core machine with a cold inductor cache (seconds when warm)."""
+    from crowdrl.sim.obstacles import process_obstacles
+
+    monkeypatch.setattr(fast, "OBSTACLE_SLOTS", 2)
+    lines = fallback = 0
+    for seed, box in ((0, 1.5), (1, 1.0), (2, 0.8), (3, 2.0)):
+        args, mask = _scene(seed, box, n_absent=seed % 2)
+        walls = _walls(seed, box)
+        ref = _assert_agree_obstacles(args, mask, walls if seed % 2 else process_obstacles(walls))
+        lines += int(ref.num_obstacle_lines.sum())
+        fallback += int((ref.lp_infeasible & (ref.num_obstacle_lines > 0)).sum())
+    assert lines > 30 and fallback > 3, (lines, fallback)
+
+
+@pytest.mark.slow
+def test_compiled_grows_its_obstacle_slots(monkeypatch):
+    """Agents inside a U of three walls see three edges, one more than the 2 slots first compiled:
+    the call is computed again with 4 slots (a second compilation) and agrees with eager."""
+    monkeypatch.setattr(fast, "OBSTACLE_SLOTS", 2)
+    monkeypatch.setattr(fast, "_SLOTS", {})
+    args, mask = _scene(7, 0.8)
+    u = torch.tensor([[[-1.5, -1.5], [1.5, -1.5]], [[1.5, -1.5], [1.5, 1.5]], [[-1.5, 1.5], [-1.5, -1.5]]])
+    _assert_agree_obstacles(args, mask, u.expand(B, 3, 2, 2), tho=5.0)
+    assert list(fast._SLOTS.values()) == [4]

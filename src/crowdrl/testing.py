@@ -58,14 +58,20 @@ def _cluster(rng: np.random.Generator, n: int, gap_lo: float, gap_hi: float) -> 
 
 
 def rvo2_velocities(scene: dict[str, np.ndarray], *, time_step: float = 0.25, neighbor_dist: float = 10.0,
-                    max_neighbors: int = 10, time_horizon: float = 5.0) -> np.ndarray:
-    """One RVO2 ``doStep`` of ``scene`` through pyrvo: the new velocities ``[n, 2]`` (float64)."""
+                    max_neighbors: int = 10, time_horizon: float = 5.0, time_horizon_obst: float = 5.0) -> np.ndarray:
+    """One RVO2 ``doStep`` of ``scene`` through pyrvo: the new velocities ``[n, 2]`` (float64).
+
+    ``scene["obstacles"]``, if present, lists polygons ``[n_vertices, 2]`` (RVO2's convention), added
+    in order and processed before the agents are added."""
     import pyrvo
 
-    sim = pyrvo.RVOSimulator(time_step, neighbor_dist, max_neighbors, time_horizon, 5.0, 0.3, 1.0)
+    sim = pyrvo.RVOSimulator(time_step, neighbor_dist, max_neighbors, time_horizon, time_horizon_obst, 0.3, 1.0)
+    for polygon in scene.get("obstacles", ()):
+        sim.add_obstacle([tuple(map(float, v)) for v in polygon])
+    sim.process_obstacles()
     for p, v, r, m in zip(scene["positions"], scene["velocities"], scene["radius"], scene["max_speed"]):
-        sim.add_agent(tuple(map(float, p)), neighbor_dist, max_neighbors, time_horizon, 5.0, float(r), float(m),
-                      tuple(map(float, v)))
+        sim.add_agent(tuple(map(float, p)), neighbor_dist, max_neighbors, time_horizon, time_horizon_obst, float(r),
+                      float(m), tuple(map(float, v)))
     for i, pv in enumerate(scene["pref_velocities"]):
         sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
     sim.do_step()
@@ -88,6 +94,145 @@ def padded_batch(scenes: list[dict[str, np.ndarray]],
         mask[b, :n] = True
     return out, mask
 
+
+
+OBSTACLE_KINDS = ("walls", "pillars", "gap", "concave", "room")
+
+
+def random_obstacle_scene(rng: np.random.Generator, kind: str) -> dict[str, np.ndarray | list[np.ndarray]]:
+    """A scene among static obstacles (see :data:`OBSTACLE_KINDS`), float32-exact, for ORCA tests.
+
+    ``walls``: random wall segments; ``pillars``: convex polygons; ``gap``: two boxes or two
+    collinear walls with a narrow gap (about one to three agent diameters); ``concave``: L, U and
+    star polygons; ``room``: four walls around pillars (many edges within reach). Agents (3 to 8,
+    radius 0.2-0.4 m, max speed 0.5-1.5 m/s) are placed near corners, touching or overlapping edges
+    (surface gap -0.5r to +0.3r), in the gaps, or anywhere, never inside a solid polygon.
+    ``obstacles`` lists the polygons (counter-clockwise, 2 vertices for a wall).
+    """
+    if kind not in OBSTACLE_KINDS:
+        raise ValueError(f"unknown obstacle scene kind {kind!r}; expected one of {OBSTACLE_KINDS}")
+    polys: list[np.ndarray] = []
+    gaps: list[np.ndarray] = []
+
+    def box(c, w, h, ang=0.0):
+        pts = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+        rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        return c + pts @ rot.T
+
+    def convex(c):
+        n = int(rng.integers(3, 8))
+        ang = np.cumsum(rng.uniform(0.3, 1.0, n))
+        ang = ang / ang[-1] * 2 * np.pi + rng.uniform(0, 2 * np.pi)
+        rad = rng.uniform(0.4, 1.5)
+        return c + rad * np.stack((np.cos(ang), np.sin(ang)), -1)
+
+    def wall(c):
+        a, length = rng.uniform(0, np.pi), rng.uniform(1, 6)
+        d = 0.5 * length * np.array([np.cos(a), np.sin(a)])
+        return np.array([c - d, c + d])
+
+    if kind == "walls":
+        polys = [wall(rng.uniform(-4, 4, 2)) for _ in range(int(rng.integers(1, 6)))]
+    elif kind == "pillars":
+        polys = [convex(rng.uniform(-4, 4, 2)) for _ in range(int(rng.integers(1, 5)))]
+    elif kind == "gap":
+        g = rng.uniform(0.5, 1.6)
+        a = rng.uniform(0, np.pi)
+        d, n = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+        if rng.random() < 0.5:
+            w = rng.uniform(1, 3)
+            polys = [box(side * (g / 2 + w / 2) * d, w, rng.uniform(0.3, 2), a) for side in (1, -1)]
+        else:
+            polys = [np.array([g / 2 * d, (g / 2 + rng.uniform(1, 4)) * d]),
+                     np.array([-(g / 2 + rng.uniform(1, 4)) * d, -g / 2 * d])]
+        gaps = [rng.uniform(-0.2, 0.2) * d + t * n for t in (-1.0, -0.3, 0.0, 0.3, 1.0)]
+        if rng.random() < 0.5:
+            polys.append(wall(rng.uniform(-3, 3, 2)))
+    elif kind == "concave":
+        for _ in range(int(rng.integers(1, 3))):
+            c = rng.uniform(-3, 3, 2)
+            shape = int(rng.integers(3))
+            if shape == 0:  # L
+                w, t = rng.uniform(1, 3), rng.uniform(0.3, 0.9)
+                q = np.array([[0, 0], [w, 0], [w, t], [t, t], [t, w], [0, w]])
+            elif shape == 1:  # U
+                w, t = rng.uniform(1.5, 3), rng.uniform(0.3, 0.6)
+                q = np.array([[0, 0], [w, 0], [w, w], [w - t, w], [w - t, t], [t, t], [t, w], [0, w]])
+            else:  # star
+                k = int(rng.integers(4, 7))
+                ang = np.arange(2 * k) * np.pi / k
+                rad = np.where(np.arange(2 * k) % 2 == 0, rng.uniform(1, 2), rng.uniform(0.3, 0.8))
+                q = np.stack((rad * np.cos(ang), rad * np.sin(ang)), -1)
+            ang = rng.uniform(0, 2 * np.pi)
+            rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+            polys.append(c + q @ rot.T)
+        if rng.random() < 0.5:
+            polys.append(convex(rng.uniform(-4, 4, 2)))
+    else:  # room
+        h = rng.uniform(2.5, 5)
+        corners = [np.array([-h, -h]), np.array([h, -h]), np.array([h, h]), np.array([-h, h])]
+        polys = [np.array([corners[i], corners[(i + 1) % 4]]) for i in range(4)]
+        polys += [convex(rng.uniform(-h + 1, h - 1, 2)) for _ in range(int(rng.integers(1, 4)))]
+    polys = [np.asarray(p, dtype=np.float32) for p in polys]
+
+    solids = [p for p in polys if len(p) >= 3]
+    edges = [(p[i], p[(i + 1) % len(p)]) for p in polys for i in range(len(p) if len(p) > 2 else 1)]
+    vertices = np.concatenate(polys)
+
+    def inside(x):  # even-odd rule
+        for p in solids:
+            y0, y1 = p[:, 1], np.roll(p[:, 1], -1)
+            x0, x1 = p[:, 0], np.roll(p[:, 0], -1)
+            cross = (y0 > x[1]) != (y1 > x[1])
+            xs = x0 + (x[1] - y0) * (x1 - x0) / np.where(y1 != y0, y1 - y0, 1)
+            if np.sum(cross & (x[0] < xs)) % 2 == 1:
+                return True
+        return False
+
+    n = int(rng.integers(3, 9))
+    radius = rng.uniform(0.2, 0.4, n)
+    pos = []
+    for i in range(n):
+        for _ in range(100):
+            how = rng.random()
+            if how < 0.3:  # near a corner
+                x = vertices[int(rng.integers(len(vertices)))] + rng.normal(0, 0.6, 2)
+            elif how < 0.6:  # touching an edge (either side; solids reject the inner one)
+                a, b = edges[int(rng.integers(len(edges)))]
+                e = b - a
+                nrm = np.array([e[1], -e[0]]) / np.linalg.norm(e) * rng.choice([-1, 1])
+                x = a + rng.uniform(-0.1, 1.1) * e + nrm * radius[i] * (1 + rng.uniform(-0.5, 0.3))
+            elif how < 0.8 and gaps:
+                x = gaps[int(rng.integers(len(gaps)))] + rng.normal(0, 0.15, 2)
+            else:
+                x = rng.uniform(-5, 5, 2)
+            if not inside(x):
+                break
+        pos.append(x)
+    pos = np.array(pos)
+    max_speed = rng.uniform(0.5, 1.5, n)
+    speed = rng.uniform(0, 1, n) * max_speed
+    ang = rng.uniform(0, 2 * np.pi, n)
+    vel = np.stack((speed * np.cos(ang), speed * np.sin(ang)), -1)
+    pref = rng.uniform(-5, 5, (n, 2)) - pos
+    norm = np.linalg.norm(pref, axis=-1, keepdims=True)
+    pref = np.where(norm > 1, pref / np.maximum(norm, 1e-9), pref)
+    f32 = lambda a: np.asarray(a, dtype=np.float32)  # noqa: E731
+    return {"positions": f32(pos), "velocities": f32(vel), "pref_velocities": f32(pref), "radius": f32(radius),
+            "max_speed": f32(max_speed), "obstacles": polys}
+
+
+def padded_obstacles(scenes: list[dict], dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """The scenes' ``obstacles`` as ``[B, P, V, 2]`` polygons and their vertex mask ``[B, P, V]``."""
+    P = max(1, max(len(s.get("obstacles", ())) for s in scenes))
+    V = max([2] + [len(p) for s in scenes for p in s.get("obstacles", ())])
+    out = torch.zeros(len(scenes), P, V, 2, dtype=dtype)
+    mask = torch.zeros(len(scenes), P, V, dtype=torch.bool)
+    for b, s in enumerate(scenes):
+        for p, poly in enumerate(s.get("obstacles", ())):
+            out[b, p, :len(poly)] = torch.as_tensor(np.asarray(poly), dtype=dtype)
+            mask[b, p, :len(poly)] = True
+    return out, mask
 
 
 def robot_centric_states(*batch: int, n: int = 10, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,5 +277,5 @@ def train_until_killed(run, folder, frame: int) -> None:
     raise AssertionError(f"the run ended without an update at frame {frame}")
 
 
-__all__ = ["KINDS", "ORCA_TOLERANCE", "KilledRun", "padded_batch", "random_scene", "robot_centric_states",
-           "rvo2_velocities", "train_until_killed"]
+__all__ = ["KINDS", "OBSTACLE_KINDS", "ORCA_TOLERANCE", "KilledRun", "padded_batch", "padded_obstacles",
+           "random_obstacle_scene", "random_scene", "robot_centric_states", "rvo2_velocities", "train_until_killed"]

@@ -18,6 +18,13 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
 * **One big fusion group.** ``max_fusion_size`` is raised far above inductor's default of 64
   nodes; with the default the graph is cut into many kernels streaming every intermediate
   through memory, several times slower.
+* **Obstacles in the same graph.** With obstacles the processed edges (eager
+  :func:`~crowdrl.sim.obstacles.process_obstacles`, once per call unless given as
+  :class:`~crowdrl.sim.obstacles.ObstacleEdges`) are packed ``[F, E, B]``; the graph finds each
+  agent's obstacle neighbours and their kd-tree visiting order, ranks them (no sort), selects them
+  into ``O`` static slots (:data:`OBSTACLE_SLOTS`, grown and recompiled when an agent has more),
+  builds their lines with the eager path's :func:`~crowdrl.sim.orca._obstacle_line_math`, applies
+  the "already covered" rule and puts the kept lines first, hard in ``linearProgram3``.
 * **The rare 3-D fallback apart.** ``linearProgram3`` (``O(K^3)`` work) runs in a second compiled
   graph over only the agents whose 2-D program failed (gathered eagerly, padded to a multiple
   of 16 lanes), compiled once with a dynamic agent count; in crowd scenes well under 1% of the
@@ -30,7 +37,8 @@ eager path uses a correctly rounded ``sqrt`` too), so the two agree bit for bit 
 (tested to ``|dv| <= 1e-5``).
 
 Cost: compilation is lazy, on the first call of each static configuration
-``(B, N, dtype, device, ORCA parameters, mask given or not, torch.get_num_threads())``, and kept
+``(B, N, dtype, device, ORCA parameters, mask given or not, torch.get_num_threads())``, with
+obstacles also the padded edge count, the kd-tree depth, ``time_horizon_obst`` and the slots, and kept
 in a process-wide cache (inductor specialises its OpenMP code on the thread count). The graphs
 have thousands of nodes: with a cold inductor cache one configuration takes minutes (about 2 to
 8 min for B=1024, N=10 on a loaded 2-core machine: tracing, fusion scheduling and a large C++
@@ -48,7 +56,15 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from crowdrl.sim.orca import RVO_EPSILON, OrcaSolution, _check_inputs, _line_math
+from crowdrl.sim.obstacles import ObstacleEdges
+from crowdrl.sim.orca import (
+    RVO_EPSILON,
+    OrcaSolution,
+    _check_inputs,
+    _line_math,
+    _obstacle_line_math,
+    prepare_obstacles,
+)
 
 __all__ = ["compiled_orca_solve", "clear_compiled_cache", "INDUCTOR_OPTIONS"]
 
@@ -77,10 +93,15 @@ def _f(value: float, dtype: torch.dtype) -> float:
 
 
 def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: float,
-           time_horizon: float, has_mask: bool) -> Callable:
-    """The uncompiled solver for one static configuration (``K`` lines per agent)."""
+           time_horizon: float, has_mask: bool, obst: tuple | None = None) -> Callable:
+    """The uncompiled solver for one static configuration (``K`` agent lines per agent; with
+    ``obst = (E, D, O, time_horizon_obst)``: ``E`` edges, kd-tree depth ``D``, ``O`` obstacle slots)."""
     inv_th = _f(1.0 / _f(time_horizon, dtype), dtype) if dtype != torch.float64 else 1.0 / time_horizon
     inv_ts = _f(1.0 / _f(time_step, dtype), dtype) if dtype != torch.float64 else 1.0 / time_step
+    E, D, O, tho = obst if obst is not None else (0, 0, 0, 1.0)
+    inv_tho = _f(1.0 / _f(tho, dtype), dtype) if dtype != torch.float64 else 1.0 / tho
+    tho = _f(tho, dtype)
+    L = O + K  # lines per agent: obstacle slots first
     range_sq = neighbor_dist * neighbor_dist
     inf = math.inf
     eps = RVO_EPSILON
@@ -196,8 +217,83 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
             qys.append(qy)
         return dxs, dys, qxs, qys, keeps
 
-    def solve_main(inp: Tensor, mask: Tensor | None = None):
-        """``inp``: ``[8, N, B]`` (x, y, vx, vy, pref x, pref y, radius, max speed)."""
+    def obstacle_lines_of(X, Y, VX, VY, R, MS, M, EP):
+        """Obstacle neighbours (ranked as in the eager path) and their kept ORCA lines, each a list
+        of ``O`` ``[N, B]`` tensors, and the number of edges found per agent."""
+        reach = tho * MS + R
+        range_sq = reach * reach
+        d, key, attrs = [], [], []
+        n_found = None
+        for e in range(E):
+            f = lambda i: EP[i, e:e + 1]  # noqa: E731  [1, B]
+            ax, ay, bx, by = f(0), f(1), f(2), f(3)
+            ex, ey = bx - ax, by - ay
+            left_of = _det(ax - X, ay - Y, ex, ey)
+            e_sq = ex * ex + ey * ey
+            apx, apy = X - ax, Y - ay
+            r = (apx * ex + apy * ey) / e_sq
+            bpx, bpy = X - bx, Y - by
+            fx, fy = X - (ax + r * ex), Y - (ay + r * ey)
+            dist_sq = torch.where(r < 0, apx * apx + apy * apy,
+                                  torch.where(r > 1, bpx * bpx + bpy * bpy, fx * fx + fy * fy))
+            found = (f(12) > 0.5) & (left_of < 0) & (left_of * left_of / e_sq < range_sq) & (dist_sq < range_sq)
+            if M is not None:
+                found = found & M
+            k_e = None
+            for k in range(D):  # the kd-tree query reaches the edge; its visiting-order key
+                c = 14 + 5 * k
+                sx, sy, tx, ty = f(c), f(c + 1), f(c + 2), f(c + 3)
+                ux, uy = tx - sx, ty - sy
+                a_left = _det(sx - X, sy - Y, ux, uy)
+                near = (a_left >= 0) == (f(c + 4) > 0.5)
+                deep = f(13) > k
+                found = found & (~deep | near | (a_left * a_left / (ux * ux + uy * uy) < range_sq))
+                digit = torch.where(deep, torch.where(near, 0, 2), 1)
+                k_e = digit if k_e is None else k_e * 3 + digit
+            d.append(torch.where(found, dist_sq, inf))
+            key.append(torch.zeros_like(X, dtype=torch.int64) if k_e is None else k_e)
+            attrs.append((ax, ay, bx, by, f(4), f(5), f(6), f(7), f(8), f(9), f(10) > 0.5, f(11) > 0.5, found))
+            n_found = found.to(torch.int64) if n_found is None else n_found + found.to(torch.int64)
+        # rank of edge e: #{f : (d_f, key_f) < (d_e, key_e)} (the eager path's two sorts)
+        ranks = []
+        for e in range(E):
+            rank = None
+            for g in range(E):
+                if g != e:
+                    c = ((d[g] < d[e]) | ((d[g] == d[e]) & (key[g] < key[e]))).to(torch.int64)
+                    rank = c if rank is None else rank + c
+            ranks.append(rank if rank is not None else torch.zeros_like(X, dtype=torch.int64))
+        odx, ody, oqx, oqy, okeep, r1s, r2s = [], [], [], [], [], [], []
+        ri = inv_tho * R
+        for slot in range(O):
+            sel = []
+            for i in range(13):
+                out = attrs[E - 1][i]
+                for e in range(E - 2, -1, -1):
+                    out = torch.where(ranks[e] == slot, attrs[e][i], out)
+                sel.append(out)
+            ax, ay, bx, by, ux, uy, pvx, pvy, nvx, nvy, c1, c2, found = sel
+            r1x, r1y, r2x, r2y = ax - X, ay - Y, bx - X, by - Y
+            dx, dy, qx, qy, has = _obstacle_line_math(
+                r1x, r1y, r2x, r2y, bx - ax, by - ay, ux, uy, pvx, pvy, nvx, nvy, c1, c2, VX, VY, R, inv_tho,
+                torch.where, torch.sqrt)
+            kept = has & found
+            for j in range(slot):  # "already covered" by an earlier kept obstacle line
+                g1x, g1y = inv_tho * r1x - oqx[j], inv_tho * r1y - oqy[j]
+                g2x, g2y = inv_tho * r2x - oqx[j], inv_tho * r2y - oqy[j]
+                covers = ((_det(g1x, g1y, odx[j], ody[j]) - ri >= -eps)
+                          & (_det(g2x, g2y, odx[j], ody[j]) - ri >= -eps))
+                kept = kept & ~(okeep[j] & covers)
+            odx.append(torch.where(kept, dx, 1.0))
+            ody.append(torch.where(kept, dy, 0.0))
+            oqx.append(torch.where(kept, qx, 0.0))
+            oqy.append(torch.where(kept, qy, 0.0))
+            okeep.append(kept)
+        return odx, ody, oqx, oqy, okeep, n_found
+
+    def solve_main(inp: Tensor, mask: Tensor | None = None, ep: Tensor | None = None):
+        """``inp``: ``[8, N, B]`` (x, y, vx, vy, pref x, pref y, radius, max speed); ``ep``: the
+        packed obstacle edges ``[14 + 5 D, E, B]`` (see :func:`_pack_edges`) when ``O > 0``."""
         X, Y, VX, VY, OX, OY, R, MS = inp.unbind(0)
         M = mask
         # ---- linearProgram2 towards the preferred velocity, clipped to the max-speed disc.
@@ -206,26 +302,39 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
         inv_o_len = 1.0 / torch.sqrt(o_sq)
         start_x = torch.where(outside, OX * inv_o_len * MS, OX)
         start_y = torch.where(outside, OY * inv_o_len * MS, OY)
-        if K == 0:
+        if O == 0 and K == 0:
             failed = torch.zeros_like(outside)
             return start_x, start_y, failed, torch.zeros_like(X, dtype=torch.int64), None, None, None
-        dxs, dys, qxs, qys, keeps = lines_of(X, Y, VX, VY, R, M)
+        dxs, dys, qxs, qys, keeps = lines_of(X, Y, VX, VY, R, M) if K > 0 else ([], [], [], [], [])
+        if O > 0:
+            odx, ody, oqx, oqy, okeep, n_found = obstacle_lines_of(X, Y, VX, VY, R, MS, M, ep)
+            dxs, dys, qxs, qys, keeps = odx + dxs, ody + dys, oqx + qxs, oqy + qys, okeep + keeps
         cands = lp1(dxs, dys, qxs, qys, keeps, MS, OX, OY, False)
         rx, ry, failed, fail_line = scan(dxs, dys, qxs, qys, keeps, cands, start_x, start_y)
-        n_nb = keeps[0].to(torch.int64)
-        for s in range(1, K):
+        n_nb = torch.zeros_like(X, dtype=torch.int64) if K == 0 else keeps[O].to(torch.int64)
+        for s in range(O + 1, L):
             n_nb = n_nb + keeps[s].to(torch.int64)
-        lines = torch.stack([torch.stack(t) for t in (dxs, dys, qxs, qys)])  # [4, K, N, B]
-        return rx, ry, failed, n_nb, lines, torch.stack(keeps), fail_line
+        lines = torch.stack([torch.stack(t) for t in (dxs, dys, qxs, qys)])  # [4, L, N, B]
+        out = rx, ry, failed, n_nb, lines, torch.stack(keeps), fail_line
+        if O > 0:
+            n_obst = keeps[0].to(torch.int64)
+            for s in range(1, O):
+                n_obst = n_obst + keeps[s].to(torch.int64)
+            out = out + (n_obst, n_found)
+        return out
 
     def solve_lp3(lines: Tensor, keep: Tensor, begin: Tensor, MS: Tensor, rx: Tensor, ry: Tensor):
-        """linearProgram3 for ``[S]`` agents: lines ``[4, K, S]``, keep ``[K, S]``."""
+        """linearProgram3 for ``[S]`` agents: lines ``[4, L, S]``, keep ``[L, S]``, the first ``O``
+        obstacle lines (kept as they are in every projected program)."""
         dxs, dys, qxs, qys = (list(t.unbind(0)) for t in lines.unbind(0))
         keeps = list(keep.unbind(0))
-        sols = [None]
-        for i in range(1, K):
-            pdx, pdy, pqx, pqy, pkeep = [], [], [], [], []
-            for j in range(i):
+        sols = []
+        for i in range(L):
+            pdx, pdy, pqx, pqy, pkeep = dxs[:O], dys[:O], qxs[:O], qys[:O], keeps[:O]
+            if O == 0 and i == 0:  # no lines: RVO2's LP2 on zero lines keeps opt*radius
+                sols.append(None)
+                continue
+            for j in range(O, i):
                 determinant = _det(dxs[i], dys[i], dxs[j], dys[j])
                 parallel = torch.abs(determinant) <= eps
                 same_dir = (dxs[i] * dxs[j] + dys[i] * dys[j]) > 0
@@ -245,7 +354,7 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
             sx, sy, sfail, _ = scan(pdx, pdy, pqx, pqy, pkeep, pc, opt_x * MS, opt_y * MS)
             sols.append((sx, sy, sfail))
         distance = torch.zeros_like(rx)
-        for i in range(K):
+        for i in range(L):
             violation = _det(dxs[i], dys[i], qxs[i] - rx, qys[i] - ry)
             active = keeps[i] & (begin <= i) & (violation > distance)
             if sols[i] is None:  # no earlier lines: RVO2's LP2 on zero lines keeps opt*radius
@@ -273,20 +382,22 @@ def _fresh(fn: Callable, tag: str) -> Callable:
 
 
 def _get_compiled(B: int, N: int, K: int, dtype: torch.dtype, device: torch.device, time_step: float,
-                  neighbor_dist: float, time_horizon: float, has_mask: bool) -> tuple[Callable, Callable]:
+                  neighbor_dist: float, time_horizon: float, has_mask: bool,
+                  obst: tuple | None = None) -> tuple[Callable, Callable]:
     threads = torch.get_num_threads()
     key = (None if DYNAMIC_BATCH else B, N, K, dtype, str(device), float(time_step), float(neighbor_dist),
-           float(time_horizon), has_mask, threads)
+           float(time_horizon), has_mask, threads, obst)
     fns = _CACHE.get(key)
     if fns is None:
         with _LOCK:
             fns = _CACHE.get(key)
             if fns is None:
-                main, lp3 = _build(N, K, dtype, float(time_step), float(neighbor_dist), float(time_horizon), has_mask)
+                main, lp3 = _build(N, K, dtype, float(time_step), float(neighbor_dist), float(time_horizon), has_mask,
+                                   obst)
                 tag = f"{len(_CACHE)}"
                 main, lp3 = _fresh(main, tag), _fresh(lp3, tag)
-                # linearProgram3 depends only on (K, dtype, threads); one dynamic-size compile serves all.
-                lp3_key = ("lp3", K, dtype, str(device), threads)
+                # linearProgram3 depends only on (K, O, dtype, threads); one dynamic-size compile serves all.
+                lp3_key = ("lp3", K, dtype, str(device), threads) + ((obst[2],) if obst is not None else ())
                 lp3_c = _CACHE.get(lp3_key)
                 if lp3_c is None:
                     lp3_c = torch.compile(lp3, fullgraph=True, dynamic=None, options=dict(INDUCTOR_OPTIONS))
@@ -303,6 +414,31 @@ DYNAMIC_BATCH = True
 
 _LP3_ALIGN = 16  # the infeasible subset is padded to a multiple of this (>= 2 avoids size-1 specialisation)
 
+OBSTACLE_SLOTS = 4  # obstacle-neighbour slots per agent compiled first (grown, and recompiled, when exceeded)
+_EDGE_ALIGN = 4  # the edge count is padded to a multiple of this (fewer recompilations)
+_SLOTS: dict[tuple, int] = {}  # obstacle slots per configuration, once grown
+
+
+def _pack_edges(edges: ObstacleEdges, size: int) -> Tensor:
+    """The edges as ``[14 + 5 D, size, B]``: start, end, direction, previous and next direction (2
+    each), start/end convexity, validity, depth, then per tree level the ancestor's start and end
+    and whether the edge is in its left subtree; padding edges are invalid."""
+    B, E = edges.valid.shape
+    D = edges.ancestors.shape[-1]
+    dtype = edges.start.dtype
+    idx = edges.ancestors.reshape(B, E * D, 1).expand(B, E * D, 2)
+    anc_start = edges.start.gather(1, idx).view(B, E, D, 2)
+    anc_end = edges.end.gather(1, idx).view(B, E, D, 2)
+    per_level = torch.cat((anc_start, anc_end, edges.in_left.unsqueeze(-1).to(dtype)), -1).reshape(B, E, 5 * D)
+    flags = torch.stack((edges.start_convex, edges.end_convex, edges.valid), -1).to(dtype)
+    feats = torch.cat((edges.start, edges.end, edges.direction, edges.prev_direction, edges.next_direction, flags,
+                       edges.depth.unsqueeze(-1).to(dtype), per_level), -1)  # [B, E, F]
+    if size > E:
+        pad = feats.new_zeros(B, size - E, feats.shape[-1])
+        pad[..., 2] = 1.0  # a unit edge (0, 0) -> (1, 0), invalid
+        feats = torch.cat((feats, pad), 1)
+    return feats.permute(2, 1, 0).contiguous()
+
 
 def compiled_orca_solve(
     positions: Tensor,
@@ -316,29 +452,60 @@ def compiled_orca_solve(
     max_neighbors: int,
     time_horizon: float,
     mask: Tensor | None = None,
+    obstacles: Tensor | ObstacleEdges | None = None,
+    obstacle_mask: Tensor | None = None,
+    time_horizon_obst: float | None = None,
 ) -> OrcaSolution:
     """:func:`crowdrl.sim.orca.orca_solve`, compiled; same arguments, result and dtypes.
 
     The first call for a new static configuration (batch shape, dtype, device, ORCA parameters,
-    whether ``mask`` is given, ``torch.get_num_threads()``) compiles (see the module docstring).
+    whether ``mask`` is given, ``torch.get_num_threads()``; with obstacles also the edge count
+    rounded up to a multiple of 4, the obstacle kd-tree depth, ``time_horizon_obst`` and the number
+    of obstacle-neighbour slots) compiles (see the module docstring). The slots start at
+    :data:`OBSTACLE_SLOTS`; a call where an agent has more obstacle neighbours is computed again with
+    more slots (one more compilation), kept for that configuration from then on.
     """
     _check_inputs(
         positions, velocities, pref_velocities, radius, max_speed, mask,
         time_step, neighbor_dist, max_neighbors, time_horizon,
     )
+    edges, tho = prepare_obstacles(positions, obstacles, obstacle_mask, time_horizon_obst, time_horizon)
     B, N, _ = positions.shape
     K = min(int(max_neighbors), N - 1)
-    main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, time_step, neighbor_dist,
-                              time_horizon, mask is not None)
     inp = torch.cat(
         (positions, velocities, pref_velocities, radius.unsqueeze(-1), max_speed.unsqueeze(-1)), -1
     ).permute(2, 1, 0).contiguous()  # [8, N, B]
     margs = (inp,) if mask is None else (inp, mask.t().contiguous())
+    obst = None
+    n_obst = None
+    if edges is not None and edges.num_edges == 0:
+        n_obst = torch.zeros(B, N, dtype=torch.long, device=positions.device)
+    elif edges is not None:
+        size = -(-edges.num_edges // _EDGE_ALIGN) * _EDGE_ALIGN
+        ep = _pack_edges(edges, size)
+        margs = (inp, None if mask is None else margs[1], ep)
+        base = (size, edges.ancestors.shape[-1], float(tho))
+        slots = _SLOTS.get(base, min(size, OBSTACLE_SLOTS))
     if DYNAMIC_BATCH and B > 1:
         for t in margs:
-            torch._dynamo.mark_dynamic(t, t.dim() - 1)
-    rx, ry, failed, n_nb, lines, keep, fail_line = main(*margs)
-    if K > 0 and bool(failed.any()):
+            if t is not None:
+                torch._dynamo.mark_dynamic(t, t.dim() - 1)
+    while True:
+        if edges is not None and edges.num_edges > 0:
+            obst = base[:2] + (slots, base[2])
+        main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, time_step, neighbor_dist,
+                                  time_horizon, mask is not None, obst)
+        out = main(*margs)
+        if obst is None:
+            break
+        n_found = int(out[8].max())
+        if n_found <= slots:
+            n_obst = out[7].t().contiguous()
+            break
+        slots = _SLOTS[base] = min(size, max(2 * slots, n_found))
+    rx, ry, failed, n_nb, lines, keep, fail_line = out[:7]
+    L = K + (obst[2] if obst is not None else 0)
+    if L > 0 and bool(failed.any()):
         A = N * B
         idx = failed.view(A).nonzero().squeeze(1)
         count = idx.numel()
@@ -359,6 +526,6 @@ def compiled_orca_solve(
     if mask is not None:
         new_v = torch.where(mask.unsqueeze(-1), new_v, velocities)
         failed = failed & mask
-    return OrcaSolution(new_v, failed, n_nb.t().contiguous())
+    return OrcaSolution(new_v, failed, n_nb.t().contiguous(), n_obst)
 
 

@@ -1,0 +1,287 @@
+"""Static obstacles for the batched ORCA: RVO2's ``addObstacle`` and ``processObstacles``, batched.
+
+Polygons come batched as ``obstacles [B, P, V, 2]`` with a vertex mask ``obstacle_mask [B, P, V]``:
+polygon ``(b, p)`` has ``n = obstacle_mask[b, p].sum()`` vertices, its valid vertices first
+(``obstacle_mask[b, p, :n]`` true, the rest false). ``n = 0`` is no polygon, ``n = 2`` a wall segment
+(seen from both sides), ``n >= 3`` a solid polygon whose vertices go counter-clockwise (RVO2's
+convention; the agents live outside it). Masked vertices are ignored whatever they hold.
+
+:func:`process_obstacles` turns them into :class:`ObstacleEdges`, the edges RVO2 works with after
+``processObstacles``: one edge per vertex (to the next vertex; a wall has two, one per side), each
+vertex's convexity, and RVO2's obstacle kd-tree. The tree matters for exactness: building it splits
+every edge that crosses the line of an edge chosen as a split node (the new vertex is convex), and
+its traversal order breaks ties between equally distant obstacle neighbours. The build here is
+RVO2's, vectorised over the batch and over each tree level's pending subtrees; its Python loop runs
+over the tree's levels (a few for a few dozen edges), never over scenes or edges.
+
+Obstacles are static: process them once per episode and pass the :class:`ObstacleEdges` to
+:func:`crowdrl.sim.orca.orca_velocities` (raw polygons work too and are processed on every call).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["ObstacleEdges", "process_obstacles", "MAX_TREE_DEPTH"]
+
+_EPSILON = 1e-5  # RVO2's RVO_EPSILON, as in crowdrl.sim.orca
+MAX_TREE_DEPTH = 39  # obstacle kd-tree levels supported (the traversal key is a base-3 int64)
+
+
+class ObstacleEdges(NamedTuple):
+    """Obstacle edges of ``B`` scenes after RVO2's ``processObstacles``, padded to ``E`` edges.
+
+    An edge starts at an RVO2 obstacle vertex (``obstacle1``) and ends at the next one (``obstacle2``).
+    ``direction``, ``prev_direction`` and ``next_direction`` are the ``direction_`` of ``obstacle1``,
+    of the vertex before it and of ``obstacle2``: the unit direction of the input polygon's edge the
+    piece lies on, of the polygon edge before and of the one after (a split piece keeps its edge's).
+
+    start, end, direction, prev_direction, next_direction: ``[B, E, 2]``.
+    start_convex, end_convex: ``[B, E]`` bool, RVO2's ``isConvex_`` of the two vertices.
+    valid: ``[B, E]`` bool, false for padding (valid edges come first).
+    ancestors: ``[B, E, D]`` long, the edge's ancestors in the obstacle kd-tree, root first (edge
+        indices; entries at depth ``>= depth`` are 0 and unused).
+    in_left: ``[B, E, D]`` bool, the edge lies in that ancestor's left subtree.
+    depth: ``[B, E]`` long, the number of ancestors.
+    """
+
+    start: Tensor
+    end: Tensor
+    direction: Tensor
+    prev_direction: Tensor
+    next_direction: Tensor
+    start_convex: Tensor
+    end_convex: Tensor
+    valid: Tensor
+    ancestors: Tensor
+    in_left: Tensor
+    depth: Tensor
+
+    @property
+    def num_edges(self) -> int:
+        return self.valid.shape[1]
+
+
+def _normalize(v: Tensor) -> Tensor:
+    """RVO2's ``normalize``: ``v`` times the reciprocal of its correctly rounded length."""
+    sq = v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1]
+    length = sq.double().sqrt().to(v.dtype) if v.dtype == torch.float32 else sq.sqrt()
+    return v * (1.0 / length).unsqueeze(-1)
+
+
+def _left_of(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+    """RVO2's ``leftOf(a, b, c) = det(a - c, b - a)``: > 0 when ``c`` lies left of ``a -> b``."""
+    return (a[..., 0] - c[..., 0]) * (b[..., 1] - a[..., 1]) - (a[..., 1] - c[..., 1]) * (b[..., 0] - a[..., 0])
+
+
+def _where_polygon(bad: Tensor) -> str:
+    b, p = (int(i) for i in bad.nonzero()[0])
+    return f"polygon (b={b}, p={p})"
+
+
+def _check_polygons(obstacles: Tensor, obstacle_mask: Tensor | None) -> Tensor:
+    """Validate the polygons; returns the vertex mask (all true when ``obstacle_mask`` is None)."""
+    if not isinstance(obstacles, Tensor) or obstacles.dim() != 4 or obstacles.shape[-1] != 2:
+        shape = tuple(obstacles.shape) if isinstance(obstacles, Tensor) else type(obstacles).__name__
+        raise ValueError(f"obstacles must be a tensor shaped [B, P, V, 2], got {shape}")
+    if not obstacles.is_floating_point():
+        raise TypeError(f"obstacles must be a floating tensor, got {obstacles.dtype}")
+    if obstacle_mask is None:
+        obstacle_mask = torch.ones(obstacles.shape[:3], dtype=torch.bool, device=obstacles.device)
+    elif (not isinstance(obstacle_mask, Tensor) or obstacle_mask.dtype != torch.bool
+          or obstacle_mask.shape != obstacles.shape[:3]):
+        got = (f"{obstacle_mask.dtype} {tuple(obstacle_mask.shape)}" if isinstance(obstacle_mask, Tensor)
+               else type(obstacle_mask).__name__)
+        raise ValueError(f"obstacle_mask must be a bool tensor shaped {tuple(obstacles.shape[:3])} ([B, P, V]), "
+                         f"got {got}")
+    elif obstacle_mask.device != obstacles.device:
+        raise ValueError(f"obstacle_mask is on {obstacle_mask.device} but obstacles is on {obstacles.device}")
+    m = obstacle_mask
+    if bool((m[..., 1:] & ~m[..., :-1]).any()):
+        raise ValueError(f"obstacle_mask: {_where_polygon((m[..., 1:] & ~m[..., :-1]).any(-1))} has a masked vertex "
+                         "before a valid one; a polygon's valid vertices must come first")
+    n = m.sum(-1)
+    if bool((n == 1).any()):
+        raise ValueError(f"obstacles: {_where_polygon(n == 1)} has 1 vertex; a polygon needs at least 2 "
+                         "(2 is a wall segment)")
+    if bool((~torch.isfinite(obstacles).all(-1) & m).any()):
+        raise ValueError(f"obstacles: {_where_polygon((~torch.isfinite(obstacles).all(-1) & m).any(-1))} has a "
+                         "NaN or infinite vertex")
+    v = obstacles.double().masked_fill(~m.unsqueeze(-1), 0.0)
+    k = torch.arange(obstacles.shape[2], device=obstacles.device)
+    nxt = torch.where(k + 1 < n.unsqueeze(-1), k + 1, 0)  # [B, P, V]
+    w = v.gather(2, nxt.unsqueeze(-1).expand_as(v))
+    same = (v == w).all(-1) & m & (n >= 2).unsqueeze(-1)
+    if bool(same.any()):
+        raise ValueError(f"obstacles: {_where_polygon(same.any(-1))} has two equal consecutive vertices "
+                         "(a zero-length edge)")
+    area2 = (v[..., 0] * w[..., 1] - v[..., 1] * w[..., 0]).masked_fill(~m, 0).sum(-1)  # twice the signed area
+    cw = (n >= 3) & ~(area2 > 0)
+    if bool(cw.any()):
+        b, p = (int(i) for i in cw.nonzero()[0])
+        area = 0.5 * float(area2[b, p])
+        what = f"is clockwise (signed area {area:.6g})" if area < 0 else "has zero area"
+        raise ValueError(f"obstacles: polygon (b={b}, p={p}) {what}; a solid polygon (3 or more vertices) must "
+                         "list its vertices counter-clockwise, as in RVO2")
+    return m
+
+
+def _polygon_edges(obstacles: Tensor, m: Tensor) -> tuple[Tensor, ...]:
+    """RVO2's ``addObstacle`` for every polygon: per-vertex edge data, ``[B, P*V, ...]``."""
+    B, P, V, _ = obstacles.shape
+    dtype, device = obstacles.dtype, obstacles.device
+    n = m.sum(-1, keepdim=True)  # [B, P, 1]
+    k = torch.arange(V, device=device)
+    nxt = torch.where(k + 1 < n, k + 1, 0)
+    prv = torch.where(k == 0, (n - 1).clamp_min(0), k - 1)
+    pts = torch.where(m.unsqueeze(-1), obstacles, torch.zeros((), dtype=dtype, device=device))
+    take = lambda t, idx: t.gather(2, idx.unsqueeze(-1).expand(B, P, V, t.shape[-1]))  # noqa: E731
+    nxt_pts, prv_pts = take(pts, nxt), take(pts, prv)
+    direction = _normalize(nxt_pts - pts)
+    wall = n == 2
+    convex = wall | (_left_of(prv_pts, pts, nxt_pts) >= 0)
+    valid = m & (n >= 2)
+    direction = torch.where(valid.unsqueeze(-1), direction, torch.zeros((), dtype=dtype, device=device))
+    flat = lambda t: t.reshape(B, P * V, *t.shape[3:])  # noqa: E731
+    return (flat(pts), flat(nxt_pts), flat(direction), flat(take(direction, prv)), flat(take(direction, nxt)),
+            flat(convex), flat(take(convex.unsqueeze(-1), nxt).squeeze(-1)), flat(valid))
+
+
+def _build_tree(start, end, direction, prev_dir, next_dir, start_convex, end_convex, valid):
+    """RVO2's ``buildObstacleTreeRecursive``, one tree level per iteration for all scenes.
+
+    Each pending edge belongs to a subtree (``group``: 0 for the root, else ``1 + 2*parent + side``).
+    In every subtree the split edge is the first one (RVO2's list order, kept by ``order``) with the
+    smallest ``(max, min)`` of the left/right counts; the others go left, right, or are split in two
+    at the split edge's line (the new piece gets a new slot at the end and the same ``order``).
+    """
+    B, E = valid.shape
+    device = valid.device
+    eps = _EPSILON
+    order = torch.arange(E, device=device).expand(B, E)
+    group = torch.zeros(B, E, dtype=torch.long, device=device)
+    placed = ~valid
+    depth = torch.zeros(B, E, dtype=torch.long, device=device)
+    ancestors: list[Tensor] = []
+    sides: list[Tensor] = []
+    level = 0
+    while True:
+        pending = ~placed
+        if not bool(pending.any()):
+            break
+        if level >= MAX_TREE_DEPTH:
+            raise ValueError(f"obstacles: the obstacle kd-tree is deeper than {MAX_TREE_DEPTH} levels "
+                             "(too many edges crossing each other's lines)")
+        E = valid.shape[1]
+        eye = torch.eye(E, dtype=torch.bool, device=device)
+        same = pending.unsqueeze(2) & pending.unsqueeze(1) & (group.unsqueeze(2) == group.unsqueeze(1)) & ~eye
+        # j against i's line: l1[b, i, j] = leftOf(start_i, end_i, start_j), l2 the same for end_j
+        si, ei = start.unsqueeze(2), end.unsqueeze(2)
+        l1 = _left_of(si, ei, start.unsqueeze(1))
+        l2 = _left_of(si, ei, end.unsqueeze(1))
+        left = (l1 >= -eps) & (l2 >= -eps)
+        right = ~left & (l1 <= eps) & (l2 <= eps)
+        n_left = (same & ~right).sum(-1)
+        n_right = (same & ~left).sum(-1)
+        score = (torch.maximum(n_left, n_right) * (E + 1) + torch.minimum(n_left, n_right)) * (order.max() + 1) + order
+        chosen = pending & ~(same & (score.unsqueeze(1) < score.unsqueeze(2))).any(-1)
+        # every other pending edge j against its subtree's split edge c(j)
+        sel = same & chosen.unsqueeze(2)  # [b, i, j]: i is j's split edge
+        moving = sel.any(1)
+        c = sel.to(torch.uint8).argmax(1)  # [B, E]
+        l1c = l1.gather(1, c.unsqueeze(1)).squeeze(1)
+        l2c = l2.gather(1, c.unsqueeze(1)).squeeze(1)
+        go_left = (l1c >= -eps) & (l2c >= -eps)
+        go_right = ~go_left & (l1c <= eps) & (l2c <= eps)
+        split = moving & ~go_left & ~go_right
+        side_left = go_left | (split & (l1c > 0))  # the piece keeping the slot (J1's part)
+        depth = torch.where(chosen, level, depth)
+        placed = placed | chosen
+        parent = torch.where(moving, c, 0)
+        new_group = 1 + 2 * c + (~side_left).long()
+        group = torch.where(moving, new_group, group)
+        ancestors.append(parent)
+        sides.append(side_left)
+        S = int(split.sum(1).max())
+        if S > 0:
+            # RVO2: t = det(I2 - I1, J1 - I1) / det(I2 - I1, J1 - J2); split point J1 + t (J2 - J1)
+            gat = lambda t: t.gather(1, c.unsqueeze(-1).expand_as(t))  # noqa: E731
+            i1, i2 = gat(start), gat(end)
+            d, a, w = i2 - i1, start - i1, start - end
+            t = (d[..., 0] * a[..., 1] - d[..., 1] * a[..., 0]) / (d[..., 0] * w[..., 1] - d[..., 1] * w[..., 0])
+            point = start + t.unsqueeze(-1) * (end - start)
+            slot = torch.where(split, split.long().cumsum(1) - 1, S)  # new slot E + slot; S: discarded
+
+            def new(values: Tensor, fill) -> Tensor:
+                """The new pieces' ``values`` in ``[B, S, ...]`` (slot order)."""
+                buf = values.new_full((B, S + 1) + values.shape[2:], fill)
+                idx = slot.view(B, E, *([1] * (values.dim() - 2))).expand_as(values)
+                return buf.scatter(1, idx, values)[:, :S]
+
+            # the new piece: split point -> J2, a convex start whose previous direction is J1's own
+            extra = dict(
+                start=new(point, 0.0), end=new(end, 0.0), direction=new(direction, 0.0),
+                prev_dir=new(direction, 0.0), next_dir=new(next_dir, 0.0),
+                start_convex=new(torch.ones_like(start_convex), True), end_convex=new(end_convex, True),
+                valid=new(split, False), order=new(order, 0), group=new(1 + 2 * c + side_left.long(), 0),
+                depth=new(depth, 0), placed=new(~split, True),
+            )
+            # J1's piece keeps its slot and now ends at the split point (convex, with J1's direction)
+            sp = split.unsqueeze(-1)
+            end = torch.where(sp, point, end)
+            next_dir = torch.where(sp, direction, next_dir)
+            end_convex = end_convex | split
+            cat = lambda old, key: torch.cat((old, extra[key]), 1)  # noqa: E731
+            start, end, direction = cat(start, "start"), cat(end, "end"), cat(direction, "direction")
+            prev_dir, next_dir = cat(prev_dir, "prev_dir"), cat(next_dir, "next_dir")
+            start_convex, end_convex = cat(start_convex, "start_convex"), cat(end_convex, "end_convex")
+            valid, order, group = cat(valid, "valid"), cat(order, "order"), cat(group, "group")
+            depth, placed = cat(depth, "depth"), cat(placed, "placed")
+            sides[-1] = torch.cat((sides[-1], new(~side_left, False)), 1)
+            sides[:-1] = [torch.cat((col, new(col, False)), 1) for col in sides[:-1]]
+            ancestors = [torch.cat((col, new(col, 0)), 1) for col in ancestors]
+        level += 1
+    E = valid.shape[1]
+    if ancestors:
+        anc = torch.stack(ancestors, -1)
+        side = torch.stack(sides, -1)
+    else:
+        anc = torch.zeros(B, E, 0, dtype=torch.long, device=device)
+        side = torch.zeros(B, E, 0, dtype=torch.bool, device=device)
+    deep = torch.arange(anc.shape[-1], device=device) < depth.unsqueeze(-1)
+    anc = torch.where(deep, anc, 0)
+    side = side & deep
+    return start, end, direction, prev_dir, next_dir, start_convex, end_convex, valid, anc, side, depth
+
+
+def process_obstacles(obstacles: Tensor, obstacle_mask: Tensor | None = None) -> ObstacleEdges:
+    """RVO2's ``addObstacle`` (every polygon) and ``processObstacles``, batched over scenes.
+
+    Args:
+        obstacles: ``[B, P, V, 2]`` polygon vertices (see the module docstring for the convention).
+        obstacle_mask: ``[B, P, V]`` bool, valid vertices first in each polygon; ``None``: all valid.
+
+    Returns:
+        :class:`ObstacleEdges` in the dtype and device of ``obstacles``, the valid edges first.
+
+    Raises:
+        ValueError: a polygon with 1 vertex, a clockwise (or zero-area) solid polygon, a NaN or
+            infinite vertex, a zero-length edge, or a malformed mask; the message names the polygon.
+    """
+    m = _check_polygons(obstacles, obstacle_mask)
+    B = obstacles.shape[0]
+    edges = _polygon_edges(obstacles, m)
+    (start, end, direction, prev_dir, next_dir, start_convex, end_convex, valid, anc, side, depth) = _build_tree(*edges)
+    # valid edges first, padded to the largest count; ancestor indices follow the move
+    perm = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices
+    E = int(valid.sum(1).max()) if valid.numel() else 0
+    perm = perm[:, :E]
+    inverse = torch.zeros(B, valid.shape[1], dtype=torch.long, device=valid.device).scatter_(
+        1, perm, torch.arange(E, device=valid.device).expand(B, E).contiguous())
+    g = lambda t: t.gather(1, perm.view(B, E, *([1] * (t.dim() - 2))).expand(B, E, *t.shape[2:]))  # noqa: E731
+    anc = inverse.gather(1, g(anc).reshape(B, -1)).view(B, E, anc.shape[-1]) if anc.shape[-1] else g(anc)
+    return ObstacleEdges(g(start), g(end), g(direction), g(prev_dir), g(next_dir), g(start_convex), g(end_convex),
+                         g(valid), anc, g(side), g(depth))
