@@ -132,9 +132,18 @@ def stop_signals(trainer: Trainer):
 
 
 def checkpoint_path(path: Path | str) -> Path:
-    """``path`` itself for a file, ``<path>/checkpoints/best.pt`` for a run folder."""
+    """``path`` itself for a file; for a folder, a run folder's ``checkpoints/best.pt`` or a
+    pretrained agent's ``best.pt`` (``pretrained/<name>``). A ``pretrained/<name>`` that does not
+    exist raises :class:`CheckpointError` listing the agents that do."""
     path = Path(path)
-    return path / "checkpoints" / "best.pt" if path.is_dir() else path
+    if not path.exists() and path.parent.name == "pretrained":
+        have = sorted(f.parent.name for f in path.parent.glob("*/best.pt"))
+        raise CheckpointError(f"checkpoint: no pretrained agent {path.name!r} in {path.parent}; "
+                              f"available: {', '.join(have) or 'none'}")
+    if not path.is_dir():
+        return path
+    return path / "best.pt" if (path / "best.pt").exists() and not (path / "checkpoints").exists() else \
+        path / "checkpoints" / "best.pt"
 
 
 def load_trained_network(path: Path | str, fingerprint: str | None = None

@@ -1,0 +1,63 @@
+"""The pretrained agents in ``pretrained/`` load safely from a clone, their records match their
+checkpoints, and ``evaluate.py`` on one of them reproduces its ``eval.json``."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parents[1]
+AGENTS = sorted(p.parent for p in (ROOT / "pretrained").glob("*/best.pt"))
+METRICS = ("success_rate", "collision_rate", "timeout_rate", "navigation_time", "average_return")
+
+
+def test_the_repo_ships_pretrained_agents_with_their_records():
+    assert len(AGENTS) >= 3, AGENTS
+    index = (ROOT / "pretrained" / "README.md").read_text()
+    for agent in AGENTS:
+        assert f"`{agent.name}`" in index, agent.name
+        assert {p.name for p in agent.iterdir()} >= {"best.pt", "config.yaml", "eval.json"}
+
+
+@pytest.mark.parametrize("agent", AGENTS, ids=[a.name for a in AGENTS])
+def test_each_agent_loads_with_weights_only_and_matches_its_config_and_record(agent):
+    from crowdrl.training.config import to_dict, validate
+    from crowdrl.training.pipeline import load_trained_network
+
+    run, net, data = load_trained_network(agent)  # weights_only=True, fingerprint, finite weights
+    assert to_dict(run) == to_dict(validate(OmegaConf.load(agent / "config.yaml"), resources=False))
+    records = {r["scenario"]: r for r in json.loads((agent / "eval.json").read_text())}
+    assert set(records) == {"circle", "square"}
+    for scenario, rec in records.items():
+        assert rec["episodes"] == 1000 and rec["seed"] == 0, scenario
+        assert rec["checkpoint"] == f"pretrained/{agent.name}/best.pt"
+        assert rec["checkpoint_frames"] == data["frames"] and rec["train_seed"] == run.seed
+        assert rec["success_rate"] + rec["collision_rate"] + rec["timeout_rate"] == pytest.approx(1.0)
+
+
+def test_an_unknown_pretrained_name_lists_the_agents_that_exist(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "evaluate.py"), "checkpoint=pretrained/nope",
+                           f"hydra.run.dir={tmp_path / 'eval'}"], cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, "WANDB_MODE": "offline"}, timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "no pretrained agent 'nope'" in proc.stderr and AGENTS[0].name in proc.stderr
+
+
+@pytest.mark.slow  # ~1.5 min (1000 test cases with online planning); make test-slow
+def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
+    agent = AGENTS[0]
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "evaluate.py"),
+                           f"checkpoint=pretrained/{agent.name}", "env=square", "eval.record_episode=null",
+                           f"hydra.run.dir={tmp_path / 'eval'}"], cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, "WANDB_MODE": "offline"}, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    got = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    want = {r["scenario"]: r for r in json.loads((agent / "eval.json").read_text())}["square"]
+    for key in METRICS:  # the same cases through the same code: equal on this machine
+        assert got[key] == want[key], key
