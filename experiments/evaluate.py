@@ -76,6 +76,9 @@ def main(cfg: DictConfig) -> dict:
                                      episodes=e["episodes"], num_humans=e["num_humans"], batch=e["batch"],
                                      record_episode=e["record_episode"], device=c["device"])
     except (ValueError, ConfigError, CheckpointError) as exc:
+        from crowdrl.training.run_folder import discard_new_folders
+
+        discard_new_folders(out)  # only the folder Hydra made for this evaluation, and only while empty
         print(f"evaluate.py: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     write_records(out, [record])

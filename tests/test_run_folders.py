@@ -381,7 +381,19 @@ def test_evaluate_py_refuses_bad_threads_and_unread_keys_naming_them(tmp_path, a
     proc = subprocess.run([*EVALUATE, "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'e'}"],
                           env=ENV, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and named in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-    assert not (tmp_path / "e" / "eval.json").exists()
+    assert not (tmp_path / "e").exists()  # the folder Hydra made for the refused evaluation is gone
+
+
+def test_a_refused_evaluation_leaves_a_folder_that_existed_as_it_was(tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's")
+    before = {p.relative_to(mine): p.read_bytes() for p in mine.rglob("*") if p.is_file()}
+    proc = subprocess.run([*EVALUATE, "policy=orca", "eval.episodes=2", "threads=0", f"hydra.run.dir={mine}"],
+                          env=ENV, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "threads" in proc.stderr
+    assert {p.relative_to(mine): p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
 
 
 def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_parameter(finished_run, tmp_path):
