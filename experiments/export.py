@@ -33,7 +33,14 @@ def fail(message: str) -> None:
 @hydra.main(config_path=CONF_DIR, config_name="export", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     c = OmegaConf.to_container(cfg, resolve=True)
-    from crowdrl.export import FORMATS  # (unknown keys never get here: Hydra refuses them, naming them)
+    from crowdrl.export import FORMATS
+    from crowdrl.training.config import unknown_keys
+
+    known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "export.yaml"))
+    known.pop("defaults", None)
+    bad = unknown_keys(c, known)  # a key added with + that nothing reads (Hydra refuses other unknown keys)
+    if bad:
+        fail(f"{', '.join(bad)}: not read by export.py (unknown key); allowed: {', '.join(sorted(known))}")
 
     if c["format"] not in FORMATS:
         fail(f"format: got {c['format']!r}; allowed: {', '.join(FORMATS)}")

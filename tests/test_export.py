@@ -179,7 +179,7 @@ class _Payload:
         return os.system, (f"touch '{self.marker}'",)
 
 
-@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format"])
+@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format", "unread key"])
 def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     folder, _ = exported
     args, words = [f"checkpoint={folder}", f"out={tmp_path / 'p.onnx'}"], []
@@ -194,9 +194,12 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     elif bad == "out":
         (tmp_path / "file").write_text("")
         args[1], words = f"out={tmp_path / 'file' / 'p.onnx'}", ["out: cannot write", "is a file, not a folder"]
-    else:
+    elif bad == "format":
         args.append("format=tflite")
         words = ["format: got 'tflite'; allowed: onnx"]
+    else:  # a misspelt key added with + would otherwise be silently ignored
+        args.append("+opsett=18")
+        words = ["opsett: not read by export.py (unknown key)"]
     proc = subprocess.run([*EXPORT, *args], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
