@@ -41,7 +41,7 @@ os.environ.setdefault("WANDB_MODE", "offline")
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF_DIR = str(ROOT / "conf")
-BUDGETS = ("smoke", "demo", "episodes", "paper")  # conf/preset/<budget>.yaml
+BUDGETS = tuple(sorted(p.stem for p in (ROOT / "conf" / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")

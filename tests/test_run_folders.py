@@ -402,18 +402,14 @@ def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_param
     from crowdrl.training.checkpoint import CheckpointError
     from crowdrl.training.pipeline import evaluate_spec
 
-    data = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=False)
-    name = next(k for k, v in data["net"].items() if v.is_floating_point())
-    data["net"][name] = data["net"][name].clone().fill_(float("nan"))
-    torch.save(data, tmp_path / "nan.pt")
-    with pytest.raises(CheckpointError, match=rf"nan\.pt: the Q network's '{re.escape(name)}' holds \d+ non-finite"):
-        evaluate_spec(checkpoint=tmp_path / "nan.pt", episodes=2)
-    data = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=False)
-    name = next(k for k, v in data["predictor"].items() if v.is_floating_point())
-    data["predictor"][name] = data["predictor"][name].clone().fill_(float("inf"))
-    torch.save(data, tmp_path / "inf.pt")
-    with pytest.raises(CheckpointError, match=rf"inf\.pt: the crowd predictor's '{re.escape(name)}' holds"):
-        evaluate_spec(checkpoint=tmp_path / "inf.pt", episodes=2)
+    for entry, value, stem, said in (("net", float("nan"), "nan", "Q network's"),
+                                     ("predictor", float("inf"), "inf", "crowd predictor's")):
+        data = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=False)
+        name = next(k for k, v in data[entry].items() if v.is_floating_point())
+        data[entry][name] = data[entry][name].clone().fill_(value)
+        torch.save(data, tmp_path / f"{stem}.pt")
+        with pytest.raises(CheckpointError, match=rf"{stem}\.pt: the {said} '{re.escape(name)}' holds \d+ non-finite"):
+            evaluate_spec(checkpoint=tmp_path / f"{stem}.pt", episodes=2)
 
 
 # ----------------------------------------------------------------------------- reproduce.py
