@@ -140,6 +140,12 @@ class D3QNLoss(LossModule):
         which skips ``functional_call``'s module walk: a few ms per update in eager mode)."""
         return net(*obs) if params is None else functional_call(net, params, obs)
 
+    @staticmethod
+    def online_state_dict(loss_state: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The online network's ``state_dict`` inside this loss's ``state_dict`` (a training
+        checkpoint's ``"loss"`` entry), for loading into a fresh network."""
+        return {k[len("net."):]: v for k, v in loss_state.items() if k.startswith("net.")}
+
     def online_params(self) -> dict[str, Tensor]:
         return dict(self.net.named_parameters())
 
