@@ -88,8 +88,9 @@ def _numeric(value: Any) -> bool:
 def table(rows: Sequence[dict], columns: Sequence[Column | str]) -> str:
     """An aligned Markdown table of ``rows``; a numeric column is right-aligned."""
     cols = [c if isinstance(c, Column) else Column(c) for c in columns]
-    cells = [[c.cell(r) for c in cols] for r in rows]
-    heads = [c.title() for c in cols]
+    escape = lambda text: text.replace("|", "\\|")  # noqa: E731  (a | inside a cell would end it)
+    cells = [[escape(c.cell(r)) for c in cols] for r in rows]
+    heads = [escape(c.title()) for c in cols]
     right = [any(_numeric(c.value(r)) for r in rows) for c in cols]
     widths = [max([len(h), 3] + [len(line[i]) for line in cells]) for i, h in enumerate(heads)]
 
