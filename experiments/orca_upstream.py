@@ -46,7 +46,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def with_upstream(key: str, index: int, spec: str) -> Column:
+def with_upstream(key: str, spec: str) -> Column:
     """A metric with upstream's value in parentheses."""
     return Column(lambda r: f"{format(r[key], spec)} ({format(r['upstream_' + key], spec)})"
                   if r.get("upstream_" + key) is not None else format(r[key], spec), key.replace("_", " "))
@@ -68,9 +68,9 @@ def main(argv: list[str] | None = None) -> dict:
             row["upstream_" + key] = up[i] if up else None
         rows.append(row)
         log(f"{scenario}: success {m['success_rate']:.3f} in {row['seconds']:.1f} s")
-    columns = [Column("scenario"), with_upstream("success_rate", 1, ".3f"), with_upstream("collision_rate", 2, ".3f"),
-               Column("timeout_rate", "timeout rate", ".3f"), with_upstream("navigation_time", 3, ".2f"),
-               with_upstream("average_return", 0, ".4f"), Column("success_stderr", "±1σ success", ".3f")]
+    columns = [Column("scenario"), with_upstream("success_rate", ".3f"), with_upstream("collision_rate", ".3f"),
+               Column("timeout_rate", "timeout rate", ".3f"), with_upstream("navigation_time", ".2f"),
+               with_upstream("average_return", ".4f"), Column("success_stderr", "±1σ success", ".3f")]
     return emit(rows, columns=columns, as_json=args.json,
                 meta={"seed": args.seed, "episodes": args.episodes, "num_humans": args.num_humans,
                       "collision_velocity": args.collision_velocity},
