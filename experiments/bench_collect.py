@@ -29,6 +29,8 @@ import sys
 import time
 from pathlib import Path
 
+from benchkit import Column, add_json_argument, emit, log, table
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -44,6 +46,13 @@ def bench_train_json(checkout: Path, args: list[str]) -> dict:
     return json.loads(text[text.index("{"):])
 
 
+def bench_train_rows(checkout: Path, args: list[str]) -> list[dict]:
+    """The result rows of ``checkout``'s ``bench_train.py --json``: ``"rows"`` in the shared format of
+    ``benchkit.py``, ``"results"`` in an older checkout's."""
+    out = bench_train_json(checkout, args)
+    return out["rows"] if "rows" in out else out["results"]
+
+
 def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None, acting: str | None = None) -> float:
     """``collect_frames_per_s`` of ``checkout``'s bench_train.py."""
     args = ["--num-envs", str(num_envs), "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000"]
@@ -51,7 +60,7 @@ def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | Non
         args += ["--orca-backend", backend]
     if acting is not None:
         args += ["--acting", acting]
-    return bench_train_json(checkout, args)["results"][0]["collect_frames_per_s"]
+    return bench_train_rows(checkout, args)[0]["collect_frames_per_s"]
 
 
 def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") -> dict[str, float]:
@@ -111,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
                         "--acting (default: its own defaults; 6dfef2c has neither flag)")
     p.add_argument("--profile-backend", default="compiled", choices=["eager", "compiled", "none"])
     p.add_argument("--profile-acting", default="compiled", choices=["eager", "compiled"])
-    p.add_argument("--json", action="store_true")
+    add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.num_envs, args.batches, args.rounds) < 1:
         p.error("--num-envs, --batches and --rounds must be >= 1")
@@ -126,29 +135,29 @@ def main(argv: list[str] | None = None) -> dict:
     for _ in range(args.rounds):
         for name, checkout, backend, acting in configs:
             rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend, acting))
-            print(f"{name}: {rates[name][-1]:,.0f} frames/s", file=sys.stderr, flush=True)
+            log(f"{name}: {rates[name][-1]:,.0f} frames/s")
     base = statistics.median(rates["baseline"]) if args.baseline else None
     rows = [{"config": name, "frames_per_s": statistics.median(v), "runs": v,
              "ratio_to_baseline": statistics.median(v) / base if base else None} for name, v in rates.items()]
     parts = profile(args.num_envs, args.batches, args.profile_backend, args.profile_acting) \
         if args.profile_backend != "none" else {}
-    out = {"num_envs": args.num_envs, "threads": 1, "baseline": str(args.baseline) if args.baseline else None,
-           "baseline_config": args.baseline_config,
-           "rows": rows, "profile_backend": args.profile_backend, "profile_acting": args.profile_acting,
-           "profile_us_per_frame": parts}
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return out
-    print(f"collection, {args.num_envs} envs, 1 thread, ε-greedy SG-D3QN, median of {args.rounds} alternating runs")
-    print(f"{'config (this checkout unless baseline)':<40} {'frames/s':>10} {'ratio':>7}  runs")
-    for r in rows:
-        ratio = f"{r['ratio_to_baseline']:.2f}" if r["ratio_to_baseline"] else "-"
-        print(f"{r['config']:<40} {r['frames_per_s']:>10,.0f} {ratio:>7}  {', '.join(f'{x:,.0f}' for x in r['runs'])}")
+    meta = {"num_envs": args.num_envs, "threads": 1, "rounds": args.rounds,
+            "baseline": str(args.baseline) if args.baseline else None, "baseline_config": args.baseline_config,
+            "profile_backend": args.profile_backend, "profile_acting": args.profile_acting}
+    columns = [Column("config", "config (this checkout unless baseline)"), Column("frames_per_s", "frames/s", ",.0f"),
+               Column("ratio_to_baseline", "ratio", ".2f"),
+               Column(lambda r: ", ".join(f"{x:,.0f}" for x in r["runs"]), "runs")]
+    notes = []
     if parts:
-        print(f"\nwhere a collected frame goes (this checkout, ORCA {args.profile_backend}, acting {args.profile_acting}, cProfile):")
-        for k, v in parts.items():
-            print(f"  {k:<44} {v:7.1f} µs  ({100 * v / parts['total']:4.1f}%)")
-    return out
+        profile_rows = [{"part": k, "us_per_frame": v, "share_pct": 100 * v / parts["total"]} for k, v in parts.items()]
+        notes.append(f"Where a collected frame goes (this checkout, ORCA {args.profile_backend}, acting "
+                     f"{args.profile_acting}, cProfile):\n\n"
+                     + table(profile_rows, [Column("part"), Column("us_per_frame", "µs", ".1f"),
+                                            Column("share_pct", "%", ".1f")]))
+    return emit(rows, columns=columns, meta=meta, as_json=args.json, notes=notes,
+                extra={"profile_us_per_frame": parts},
+                title=f"Collection, {args.num_envs} envs, 1 thread, ε-greedy SG-D3QN, "
+                      f"median of {args.rounds} alternating runs")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ import time
 import numpy as np
 import torch
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim import crowd
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, unicycle_step
@@ -63,10 +64,6 @@ FULL_N = (5, 10, 20)
 QUICK_B = (1, 64, 1024)
 QUICK_N = (10,)
 MEM_B, MEM_N = 65536, 10
-
-
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def state_bytes(state: CrowdState) -> int:
@@ -269,7 +266,7 @@ def run_memory_probe(args) -> dict | None:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help=f"B in {QUICK_B}, N in {QUICK_N}, fewer steps (< 1 min)")
-    p.add_argument("--json", action="store_true", help="machine-readable output on stdout (progress on stderr)")
+    add_json_argument(p)
     p.add_argument("--threads", default="1", help="torch threads, or a comma list to compare (e.g. 1,2)")
     p.add_argument("--steps", type=int, default=None, help="timed steps per (B, N) (default 30, quick 10)")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps first")
@@ -300,29 +297,20 @@ def parse_args(argv=None):
     return args
 
 
-def fmt(x, spec):
-    return "-" if x is None else format(x, spec)
+COLUMNS = [Column("threads", "thr"), Column("N"), Column("B"), Column("core_sps", "core sps", ".0f"),
+           Column("core_ms_per_step", "ms/step", ".2f"), Column("reset_share", "reset%", lambda v: f"{100 * v:.1f}"),
+           Column("resets_per_1k", "rst/1k", ".1f"), Column("step_only_sps", "no-reset", ".0f"),
+           Column("env_sps", "env sps", ".0f"), Column("ref_sps", "ref sps", ".0f"),
+           Column("speedup_vs_ref", "xref", ".1f"), Column("state_mb", "state MB", ".3f")]
 
 
-def print_table(rows: list[dict], memory: dict | None, meta: dict) -> None:
-    print(f"# {meta['backend']} backend, scenario {meta['scenario']}, torch {meta['torch']}, "
-          f"{meta['cpus']} CPUs, random actions, env-steps/s = B * steps / s")
-    head = f"{'thr':>3} {'N':>3} {'B':>5} {'core sps':>10} {'ms/step':>8} {'reset%':>6} {'rst/1k':>6} " \
-           f"{'no-reset':>10} {'env sps':>10} {'ref sps':>8} {'xref':>7} {'state MB':>8}"
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        print(f"{r['threads']:>3} {r['N']:>3} {r['B']:>5} {r['core_sps']:>10.0f} {r['core_ms_per_step']:>8.2f} "
-              f"{100 * r['reset_share']:>6.1f} {r['resets_per_1k']:>6.1f} {r['step_only_sps']:>10.0f} "
-              f"{fmt(r.get('env_sps'), '>10.0f')} {fmt(r.get('ref_sps'), '>8.0f')} "
-              f"{fmt(r.get('speedup_vs_ref'), '>7.1f')} {r['state_mb']:>8.3f}")
-    if memory:
-        print(f"# memory at B={memory['B']}, N={memory['N']} (fresh process, peak RSS by {memory['method']}): "
-              f"state tensors {memory['state_mb']:.2f} MiB; peak RSS above the prior RSS: "
-              f"{memory['rss_init_delta_mb']:.1f} MiB building the state (initial_states), "
-              f"{memory['rss_step_delta_mb']:.1f} MiB during two steps; process peak RSS "
-              f"{memory['peak_rss_mb']:.0f} MiB (core), {memory['env_peak_rss_mb']:.0f} MiB (CrowdNavEnv: "
-              f"+{memory['env_rss_delta_mb']:.0f} MiB building it and stepping twice)")
+def memory_note(memory: dict) -> str:
+    return (f"Memory at B={memory['B']}, N={memory['N']} (fresh process, peak RSS by {memory['method']}): "
+            f"state tensors {memory['state_mb']:.2f} MiB; peak RSS above the prior RSS: "
+            f"{memory['rss_init_delta_mb']:.1f} MiB building the state (initial_states), "
+            f"{memory['rss_step_delta_mb']:.1f} MiB during two steps; process peak RSS "
+            f"{memory['peak_rss_mb']:.0f} MiB (core), {memory['env_peak_rss_mb']:.0f} MiB (CrowdNavEnv: "
+            f"+{memory['env_rss_delta_mb']:.0f} MiB building it and stepping twice)")
 
 
 def main(argv=None) -> int:
@@ -330,7 +318,7 @@ def main(argv=None) -> int:
     step_fn = select_step(args.backend)
     if step_fn is None:
         if args.json:
-            print(json.dumps({"backend": args.backend, "available": False}))
+            print(json.dumps({"meta": {"backend": args.backend, "available": False}, "rows": []}))
         return 2
     torch.set_num_threads(args.threads[0])
 
@@ -363,10 +351,10 @@ def main(argv=None) -> int:
     meta = dict(backend=args.backend, scenario=args.scenario, torch=torch.__version__, cpus=os.cpu_count(),
                 python=platform.python_version(), machine=platform.machine(), seed=args.seed,
                 steps=args.steps, warmup=args.warmup, ref_steps=args.ref_steps)
-    if args.json:
-        print(json.dumps(dict(meta=meta, rows=rows, memory=memory, reference=ref_cache), indent=1))
-    else:
-        print_table(rows, memory, meta)
+    emit(rows, columns=COLUMNS, meta=meta, as_json=args.json, extra=dict(memory=memory, reference=ref_cache),
+         notes=[memory_note(memory)] if memory else [],
+         title=f"Simulator throughput: {meta['backend']} backend, scenario {meta['scenario']}, torch {meta['torch']}, "
+               f"{meta['cpus']} CPUs, random actions, env-steps/s = B * steps / s")
     return 0
 
 

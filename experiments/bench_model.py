@@ -19,7 +19,7 @@ hours. ``naive`` is :class:`~crowdrl.models.SGD3QNEncoderNaive` (concatenated pa
 Usage::
 
     python experiments/bench_model.py                  # threads 1,2; 200 updates each
-    python experiments/bench_model.py --threads 1 --updates 1000
+    python experiments/bench_model.py --threads 1 --updates 1000 --json
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import time
 import torch
 import torch.nn.functional as F
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.models import CrowdQNetwork, DuelingHead, SGD3QNEncoder, SGD3QNEncoderNaive
 
 GAMMA = 0.974
@@ -96,6 +97,7 @@ def main(argv: list[str] | None = None) -> None:
         "--adam", default="default", choices=("default", "loop", "foreach", "fused"),
         help="Adam implementation (torch's default on CPU tensors is the per-parameter loop)",
     )
+    add_json_argument(parser)
     args = parser.parse_args(argv)
 
     threads = [int(t) for t in args.threads.split(",")]
@@ -109,9 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     state = CrowdQNetwork(SGD3QNEncoder(), DuelingHead(32, 81, 128)).state_dict()
     per_round = max(1, args.updates // args.rounds)
 
-    print(f"torch {torch.__version__}; batch {args.batch}, N={args.num_humans}; "
-          f"{args.rounds} rounds x {per_round} updates after {args.warmup} warm-up; Adam {args.adam}")
-    results = {}
+    rows = []
     for nt in threads:
         torch.set_num_threads(nt)
         nets = {name: build(name, state, args.adam) for name in encoders}
@@ -128,14 +128,22 @@ def main(argv: list[str] | None = None) -> None:
                 times[name].append((time.perf_counter() - t0) / per_round * 1e3)
                 cpu[name].append((time.process_time() - c0) / per_round * 1e3)
         for name in encoders:
-            med, best = statistics.median(times[name]), min(times[name])
-            results[(name, nt)] = med
-            print(f"threads={nt} {name:7s} {med:7.3f} ms/update (best round {best:7.3f}; "
-                  f"process CPU {statistics.median(cpu[name]):7.3f} ms)  "
-                  f"-> {med * args.project / 3.6e6:6.2f} h per {args.project:,.0f} updates")
-    if "sgd3qn" in encoders and "naive" in encoders:
-        for nt in threads:
-            print(f"threads={nt} speed-up sgd3qn vs naive: x{results[('naive', nt)] / results[('sgd3qn', nt)]:.2f}")
+            rows.append({"threads": nt, "encoder": name, "ms_per_update": statistics.median(times[name]),
+                         "ms_best_round": min(times[name]), "cpu_ms_per_update": statistics.median(cpu[name])})
+            rows[-1]["projected_hours"] = rows[-1]["ms_per_update"] * args.project / 3.6e6
+            log(f"threads={nt} {name}: {rows[-1]['ms_per_update']:.3f} ms/update")
+    for r in rows:  # the naive encoder's time over this one's, at the same thread count
+        naive = [o["ms_per_update"] for o in rows if o["encoder"] == "naive" and o["threads"] == r["threads"]]
+        r["speedup_vs_naive"] = naive[0] / r["ms_per_update"] if naive else None
+    columns = [Column("threads"), Column("encoder"), Column("ms_per_update", "ms/update", ".3f"),
+               Column("ms_best_round", "best round ms", ".3f"), Column("cpu_ms_per_update", "process CPU ms", ".3f"),
+               Column("speedup_vs_naive", "vs naive", lambda v: f"{v:.2f}×"),
+               Column("projected_hours", f"h per {args.project:,.0f} updates", ".2f")]
+    emit(rows, columns=columns, as_json=args.json,
+         meta={"torch": torch.__version__, "batch": args.batch, "num_humans": args.num_humans, "rounds": args.rounds,
+               "updates_per_round": per_round, "warmup": args.warmup, "adam": args.adam, "project": args.project},
+         title=f"One D3QN update, torch {torch.__version__}; batch {args.batch}, N={args.num_humans}; median of "
+               f"{args.rounds} rounds x {per_round} updates after {args.warmup} warm-up; Adam {args.adam}")
 
 
 if __name__ == "__main__":

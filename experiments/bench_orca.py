@@ -9,20 +9,20 @@ separately from steady state.
 
     python experiments/bench_orca.py                  # full grid, threads 1 and 2
     python experiments/bench_orca.py --quick          # B=1024, N=10 only
-    python experiments/bench_orca.py --threads 1 --json out.json
+    python experiments/bench_orca.py --threads 1 --json out.json   # the table, and the JSON in out.json
     python experiments/bench_orca.py --quick --env    # also the whole env step (crowd.step)
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
 
 import torch
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import human_preferred_velocity
@@ -119,14 +119,15 @@ def bench_env(cfg, state, backends, nt, min_time, repeats, log) -> list[dict]:
     return rows
 
 
+COLUMNS = [Column("what"), Column("backend"), Column("threads", "thr"), Column("N"), Column("B"),
+           Column("ms_per_call", "ms/call", ".3f"), Column("ms_best", "ms best", ".3f"),
+           Column("steps_per_s", "steps/s", ",.0f"), Column("compile_s", "compile s", ".1f"),
+           Column("infeasible", "infeasible")]
+
+
 def format_row(r: dict) -> str:
-    comp = f"{r['compile_s']:8.1f}" if r["compile_s"] is not None else "       -"
-    return (f"{r['what']:>8} {r['backend']:>8} {r['threads']:>3} {r['N']:>3} {r['B']:>5} "
-            f"{r['ms_per_call']:10.3f} {r['ms_best']:10.3f} {r['steps_per_s']:12,.0f} {comp}")
-
-
-HEADER = (f"{'what':>8} {'backend':>8} {'thr':>3} {'N':>3} {'B':>5} {'ms/call':>10} {'ms best':>10} "
-          f"{'steps/s':>12} {'compile s':>8}")
+    """A progress line for one measurement."""
+    return ", ".join(f"{c.title()} {c.cell(r)}" for c in COLUMNS)
 
 
 def main(argv=None) -> int:
@@ -139,8 +140,7 @@ def main(argv=None) -> int:
     p.add_argument("--env", action="store_true", help="also time the whole crowd.step per backend")
     p.add_argument("--min-time", type=float, default=1.0, help="seconds of timed calls per measurement")
     p.add_argument("--repeats", type=int, default=5, help="timing samples per measurement (median reported)")
-    p.add_argument("--json", nargs="?", const="-", default=None, metavar="PATH",
-                   help="write the rows as JSON to PATH (or stdout with no PATH / '-')")
+    add_json_argument(p, path=True)
     a = p.parse_args(argv)
     given = set(sys.argv[1:] if argv is None else argv)
     if a.quick:
@@ -149,20 +149,12 @@ def main(argv=None) -> int:
         if "--humans" not in given:
             a.humans = [10]
         a.min_time = min(a.min_time, 0.5)
-    to_stdout_json = a.json == "-"
-    log = (lambda r: print(format_row(r), file=sys.stderr, flush=True)) if to_stdout_json else \
-        (lambda r: print(format_row(r), flush=True))
-    print(HEADER, file=sys.stderr if to_stdout_json else sys.stdout, flush=True)
-    rows = bench(a.threads, a.batch, a.humans, a.backends, a.min_time, a.repeats, a.env, log)
+    rows = bench(a.threads, a.batch, a.humans, a.backends, a.min_time, a.repeats, a.env, lambda r: log(format_row(r)))
     meta = dict(torch=torch.__version__, cpu_capability=torch.backends.cpu.get_cpu_capability(),
                 note="steps_per_s = B / median seconds per call; compile_s = first call incl. compilation")
-    if a.json is not None:
-        text = json.dumps(dict(meta=meta, rows=rows), indent=1)
-        if to_stdout_json:
-            print(text)
-        else:
-            with open(a.json, "w") as f:
-                f.write(text)
+    emit(rows, columns=COLUMNS, meta=meta, as_json=a.json,
+         title=f"Batched ORCA throughput, torch {meta['torch']} ({meta['cpu_capability']}): {meta['note']}; "
+               "infeasible: agents on the 3-D fallback")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Acting cost per env-step with and without online planning (issue 13's target: planning ≤ 3×).
+"""Acting cost per env-step with and without online planning (target: planning costs ≤ 3× plain acting).
 
     python experiments/bench_planning.py                          # B = 256 and 1024, d = 1, w = 10
     python experiments/bench_planning.py --num-envs 256 --depth 2 --width 5 --json
@@ -17,11 +17,12 @@ round, after a warm-up (which also compiles the pairwise attention kernels); med
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
+
+from benchkit import Column, add_json_argument, emit, log
 
 
 def build(num_envs: int, depth: int, width: int):
@@ -85,24 +86,24 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=15, help="alternating timed rounds per batch size")
     parser.add_argument("--steps", type=int, default=3, help="collection steps per policy per round")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--json", action="store_true", help="print the rows as JSON instead of a table")
+    add_json_argument(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
     for n in args.num_envs:
         rows += measure(n, args.depth, args.width, args.rounds, args.steps)
-    if args.json:
-        print(json.dumps(rows, indent=1))
-        return
-    print(f"acting cost per env-step (µs), {args.threads} thread(s), SG-D3QN, 10 humans; planning d={args.depth} "
-          f"w={args.width}, learned predictor")
-    print("| B | policy | policy µs | act+step µs | policy ratio | act+step ratio |")
-    print("|---|---|---|---|---|---|")
-    for r in rows:
-        name = f"planning d={r['depth']} w={r['width']}" if r["planning"] else "greedy Q"
-        ratios = (f"{r['policy_ratio']:.2f}×", f"{r['act_step_ratio']:.2f}×") if r["planning"] else ("1", "1")
-        print(f"| {r['num_envs']} | {name} | {r['policy_us_per_env_step']:.1f} | {r['act_step_us_per_env_step']:.1f} "
-              f"| {ratios[0]} | {ratios[1]} |")
+        log(f"B={n}: act+step ratio {rows[-1]['act_step_ratio']:.2f}")
+    columns = [Column("num_envs", "B"),
+               Column(lambda r: f"planning d={r['depth']} w={r['width']}" if r["planning"] else "greedy Q", "policy"),
+               Column("policy_us_per_env_step", "policy µs", ".1f"),
+               Column("act_step_us_per_env_step", "act+step µs", ".1f"),
+               Column(lambda r: r.get("policy_ratio", 1.0), "policy ratio", lambda v: f"{v:.2f}×"),
+               Column(lambda r: r.get("act_step_ratio", 1.0), "act+step ratio", lambda v: f"{v:.2f}×")]
+    emit(rows, columns=columns, as_json=args.json,
+         meta={"threads": args.threads, "depth": args.depth, "width": args.width, "rounds": args.rounds,
+               "steps": args.steps, "encoder": "sgd3qn", "num_humans": 10, "predictor": "learned"},
+         title=f"Acting cost per env-step (µs), {args.threads} thread(s), SG-D3QN, 10 humans; planning d={args.depth} "
+               f"w={args.width}, learned predictor; target: planning ≤ 3× greedy Q")
 
 
 if __name__ == "__main__":

@@ -12,11 +12,12 @@ timed separately.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
+
+from benchkit import Column, add_json_argument, emit, log
 
 
 def main() -> None:
@@ -24,7 +25,7 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=100)
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--steps", type=int, default=30)
-    p.add_argument("--json", action="store_true")
+    add_json_argument(p)
     args = p.parse_args()
     if min(args.batch, args.rounds, args.steps) < 1:
         p.error("--batch, --rounds and --steps must be >= 1")
@@ -45,6 +46,7 @@ def main() -> None:
     start = time.perf_counter()
     paths["compiled"].loss_and_grad(robot, humans, next_humans)
     compile_s = time.perf_counter() - start
+    log(f"first compiled call (compilation): {compile_s:.1f} s")
     times: dict[str, list[float]] = {k: [] for k in paths}
     for _ in range(args.rounds):
         for name, loss in paths.items():
@@ -54,15 +56,14 @@ def main() -> None:
                 optimizer.step()
             times[name].append((time.perf_counter() - start) / args.steps * 1e3)
     ms = {k: statistics.median(v) for k, v in times.items()}
-    out = {"batch": args.batch, "threads": 1, "compile_s": compile_s, "eager_ms": ms["eager"],
-           "compiled_ms": ms["compiled"], "speedup": ms["eager"] / ms["compiled"], "runs_ms": times}
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return
-    print(f"predictor update (loss + gradients + Adam), batch {args.batch}, 1 thread, median of {args.rounds}")
-    for name in paths:
-        print(f"  {name:<9} {ms[name]:7.2f} ms   runs {', '.join(f'{x:.2f}' for x in times[name])}")
-    print(f"  speed-up {out['speedup']:.2f}x; first compiled call (compilation) {compile_s:.1f} s")
+    rows = [{"path": name, "ms": ms[name], "speedup_vs_eager": ms["eager"] / ms[name], "runs_ms": times[name]}
+            for name in paths]
+    columns = [Column("path"), Column("ms", "ms per update", ".2f"), Column("speedup_vs_eager", "speed-up", ".2f"),
+               Column(lambda r: ", ".join(f"{x:.2f}" for x in r["runs_ms"]), "runs (ms)")]
+    emit(rows, columns=columns, as_json=args.json,
+         meta={"batch": args.batch, "threads": 1, "rounds": args.rounds, "steps": args.steps, "compile_s": compile_s},
+         title=f"Predictor update (loss + gradients + Adam), batch {args.batch}, 1 thread, median of {args.rounds} rounds",
+         notes=[f"First compiled call (compilation): {compile_s:.1f} s"])
 
 
 if __name__ == "__main__":

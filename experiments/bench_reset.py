@@ -26,15 +26,12 @@ import time
 
 import torch
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.rng import episode_keys
 from crowdrl.sim.scenarios import initial_states
 
 SIZES = ((1024, 10), (1024, 30), (1024, 50), (512, 64), (1024, 64))
-
-
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def time_sizes(scenario: str, sizes: list[tuple[int, int]], repeat: int) -> list[dict]:
@@ -65,7 +62,9 @@ def main() -> None:
     p.add_argument("--baseline-repeat", type=int, default=1)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--baseline-src", help="another checkout's src directory, timed in a subprocess")
-    p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
+    add_json_argument(p)
+    # the baseline's run: this script with the other checkout's src first on the path, printing the raw
+    # rows of time_sizes (B, N, seconds, sha256) for the parent to compare
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
@@ -88,18 +87,14 @@ def main() -> None:
             row.update(old_s=old[i]["seconds"], ratio=old[i]["seconds"] / r["seconds"],
                        identical=old[i]["sha256"] == r["sha256"])
         rows.append(row)
-    if args.json:
-        print(json.dumps({"scenario": args.scenario, "threads": args.threads, "torch": torch.__version__,
-                          "baseline_src": args.baseline_src, "rows": rows}, indent=1))
-        return
-    print(f"initial_states, {args.scenario}, {args.threads} thread(s), torch {torch.__version__}")
-    head = f"{'B':>6} {'N':>4} {'new s':>9}"
-    print(head + (f" {'old s':>9} {'old/new':>8} {'same':>5}" if old else ""))
-    for row in rows:
-        line = f"{row['B']:>6} {row['N']:>4} {row['new_s']:>9.3f}"
-        if old:
-            line += f" {row['old_s']:>9.3f} {row['ratio']:>8.1f} {str(row['identical']):>5}"
-        print(line)
+    columns = [Column("B"), Column("N"), Column("new_s", "new s", ".3f")]
+    if old is not None:
+        columns += [Column("old_s", "old s", ".3f"), Column("ratio", "old/new", ".1f"), Column("identical", "same")]
+    emit(rows, columns=columns, as_json=args.json,
+         meta={"scenario": args.scenario, "threads": args.threads, "torch": torch.__version__,
+               "baseline_src": args.baseline_src, "repeat": args.repeat},
+         title=f"Spawn time of initial_states (median of {args.repeat}), {args.scenario}, {args.threads} thread(s), "
+               f"torch {torch.__version__}")
 
 
 if __name__ == "__main__":

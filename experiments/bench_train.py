@@ -6,6 +6,9 @@
     python experiments/bench_train.py --loss eager compiled      # what compiling the update buys
     python experiments/bench_train.py --encoders sgd3qn sarl lstm_rl mp_rgl   # per-update cost of each encoder
 
+One row per (encoder, exploration, loss); ``--json`` prints ``{"meta": ..., "rows": [...]}`` (the
+shared format of ``benchkit.py``).
+
 Measures, in one process: collecting frames with the acting policy through the TorchRL
 collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
 includes the sample-time intrinsic reward and ICM's own training step), the double-DQN loss
@@ -21,12 +24,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import json
 import statistics
 import sys
 import time
 
 import torch
+
+from benchkit import Column, add_json_argument, emit
 
 BUDGET_FRAMES = BUDGET_UPDATES = 500_000
 
@@ -36,8 +40,7 @@ def matmul_mflop_per_update(loss, sample) -> float:
     the optimiser is not a matmul and elementwise ops are not counted): the work an update's time buys.
 
     Run after all timing: with torch 2.13, torch calls in a process ran markedly slower after a
-    ``FlopCounterMode`` had been used (seen in a scratch measurement, not a repo benchmark), so
-    counting first would skew the times.
+    ``FlopCounterMode`` had been used, so counting first would skew the times.
     """
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -133,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
                    help="the acting Q network (train.compile_acting; compiled in the untimed warm-up)")
     p.add_argument("--planning", action="store_true",
                    help="act with the online planner and train its predictor (planning.enabled=true)")
-    p.add_argument("--json", action="store_true")
+    add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
         p.error("all counts must be >= 1")
@@ -159,26 +162,24 @@ def main(argv: list[str] | None = None) -> dict:
     base = results[0]["update_ms"]
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
-    out = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders, "batch_size": 100,
-           "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning,
-           "results": results}
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return out
-    print(f"threads {args.threads}, {args.num_envs} envs, batch 100, ORCA {args.orca_backend}, acting {args.acting}"
-          + (", planning" if args.planning else ""))
-    for r in results:
-        print(f"\n[{r['encoder']}, {r['exploration']}, {r['loss']} loss] collection: {r['collect_frames_per_s']:,.0f} frames/s (env + acting policy)")
-        print(f"  update: {r['update_ms']:.2f} ms = {r['updates_per_s']:.1f} updates/s "
-              f"({r['update_cost_vs_first']:.2f}x {results[0]['encoder']} + {results[0]['exploration']}, {results[0]['loss']} loss)")
-        for k, v in r["update_breakdown_ms"].items():
-            print(f"    {k:<13} {v:6.2f} ms  ({100 * v / r['update_ms']:4.1f}%)")
-        print(f"  matmul work: {r['matmul_mflop_per_update']:.1f} MFLOP per update (forward + backward), "
-              f"{r['matmul_gflop_per_s']:.1f} GFLOP/s achieved")
-        print(f"  paper budget (500k frames + 500k updates): {r['paper_budget_hours']:.2f} h projected; "
-              f"1 h needs <= {r['update_ms_for_1h_budget']:.2f} ms per update "
-              f"({r['matmul_gflop_per_s_for_1h_budget']:.0f} GFLOP/s)")
-    return out
+    meta = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders,
+            "batch_size": 100, "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning}
+    first = results[0]
+    part = lambda k: Column(lambda r: r["update_breakdown_ms"][k], f"{k} ms", ".2f")  # noqa: E731
+    columns = [Column("encoder"), Column("exploration"), Column("loss"),
+               Column("collect_frames_per_s", "collect frames/s", ",.0f"), Column("update_ms", "update ms", ".2f"),
+               Column("updates_per_s", "updates/s", ".1f"), part("sample"), part("loss_and_grad"), part("optimizer"),
+               Column("update_cost_vs_first", "vs first", ".2f"),
+               Column("matmul_mflop_per_update", "matmul MFLOP", ".1f"), Column("matmul_gflop_per_s", "GFLOP/s", ".1f"),
+               Column("paper_budget_hours", "paper budget h", ".2f"),
+               Column("update_ms_for_1h_budget", "1 h needs ms/update", ".2f")]
+    title = (f"Training throughput: threads {args.threads}, {args.num_envs} envs, batch 100, ORCA {args.orca_backend}, "
+             f"acting {args.acting}" + (", planning" if args.planning else "")
+             + f"; update cost relative to the first row ({first['encoder']}, {first['exploration']}, {first['loss']} loss)")
+    notes = ["collect frames/s: env + acting policy through the TorchRL collector; update = sample + loss_and_grad + "
+             "optimizer (ms each); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
+             "updates projected at these rates; 1 h needs: the update time that fits both in one hour"]
+    return emit(results, columns=columns, title=title, meta=meta, as_json=args.json, notes=notes)
 
 
 if __name__ == "__main__":

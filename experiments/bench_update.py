@@ -16,13 +16,13 @@ that collection rate).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_collect import ROOT, bench_train_json  # noqa: E402
+from bench_collect import ROOT, bench_train_rows  # noqa: E402
+from benchkit import Column, add_json_argument, emit, log  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--loss", nargs="+", default=["compiled", "eager"], choices=["compiled", "eager"],
                    help="this checkout's update: one compiled graph and/or eager")
-    p.add_argument("--json", action="store_true")
+    add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.updates, args.rounds) < 1:
         p.error("--updates and --rounds must be >= 1")
@@ -44,9 +44,9 @@ def main(argv: list[str] | None = None) -> dict:
     runs: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
     for _ in range(args.rounds):
         for name, checkout, loss in configs:
-            result = bench_train_json(checkout, [*common, "--loss", loss])["results"][0]
+            result = bench_train_rows(checkout, [*common, "--loss", loss])[0]
             runs[name].append(result)
-            print(f"{name}: {result['update_ms']:.2f} ms", file=sys.stderr, flush=True)
+            log(f"{name}: {result['update_ms']:.2f} ms")
     base = statistics.median(r["update_ms"] for r in runs[configs[0][0]]) if args.baseline else None
     rows = []
     for name, results in runs.items():
@@ -56,17 +56,14 @@ def main(argv: list[str] | None = None) -> dict:
                      "breakdown_ms": median_run["update_breakdown_ms"],
                      "speedup_vs_baseline": base / statistics.median(times) if base else None,
                      "paper_budget_hours": median_run["paper_budget_hours"]})
-    out = {"threads": 1, "batch_size": 100, "baseline": str(args.baseline) if args.baseline else None, "rows": rows}
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return out
-    print(f"D3QN update of SG-D3QN at batch 100, 1 thread, median of {args.rounds} alternating runs")
-    print(f"{'config':<28} {'update ms':>9} {'speed-up':>8}  {'paper h':>7}  breakdown (ms)")
-    for r in rows:
-        ratio = f"{r['speedup_vs_baseline']:.2f}x" if r["speedup_vs_baseline"] else "-"
-        parts = ", ".join(f"{k} {v:.2f}" for k, v in r["breakdown_ms"].items())
-        print(f"{r['config']:<28} {r['update_ms']:>9.2f} {ratio:>8}  {r['paper_budget_hours']:>7.2f}  {parts}")
-    return out
+    meta = {"threads": 1, "batch_size": 100, "baseline": str(args.baseline) if args.baseline else None,
+            "rounds": args.rounds, "updates": args.updates}
+    columns = [Column("config"), Column("update_ms", "update ms", ".2f"),
+               Column("speedup_vs_baseline", "speed-up", lambda v: f"{v:.2f}×"),
+               Column("paper_budget_hours", "paper budget h", ".2f"),
+               Column(lambda r: ", ".join(f"{k} {v:.2f}" for k, v in r["breakdown_ms"].items()), "breakdown (ms)")]
+    return emit(rows, columns=columns, as_json=args.json, meta=meta,
+                title=f"D3QN update of SG-D3QN at batch 100, 1 thread, median of {args.rounds} alternating runs")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Inject the faults a cluster and its users produce into `train.py` and print what happens.
 
     python experiments/faults.py            # a table: fault, expected, observed, ok
-    python experiments/faults.py --json
+    python experiments/faults.py --json     # {"meta": ..., "rows": [...]}; exit status 1 unless every row is ok
 
 Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (a few minutes in
 all on 2 cores). A run killed (SIGKILL or SIGTERM) and resumed with `train.save_buffer=true` must
@@ -21,6 +21,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchkit import Column, add_json_argument, emit, log
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
@@ -82,13 +84,14 @@ def same_result(a: Path, b: Path) -> tuple[bool, bool]:
 
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--json", action="store_true")
+    add_json_argument(p)
     args = p.parse_args(argv)
     rows: list[dict] = []
     scratch = Path(tempfile.mkdtemp(prefix="crowdrl-faults-"))
 
     def record(fault: str, expected: str, observed: str, ok: bool) -> None:
         rows.append({"fault": fault, "expected": expected, "observed": observed, "ok": bool(ok)})
+        log(f"{fault}: {'ok' if ok else 'NOT OK'}")
 
     for override in ("train.lr=inf", "exploration.beta=nan", "device=cuda", "train.batch_size=5000"):
         folder = scratch / override.replace("=", "-")
@@ -147,12 +150,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                proc.returncode == 0 and same_weights and same_metrics)
 
     shutil.rmtree(scratch, ignore_errors=True)
-    if args.json:
-        print(json.dumps(rows, indent=1))
-    else:
-        print(f"{'fault':<44} {'expected':<44} {'ok':<3} observed")
-        for r in rows:
-            print(f"{r['fault']:<44} {r['expected']:<44} {'yes' if r['ok'] else 'NO':<3} {r['observed']}")
+    emit(rows, columns=[Column("fault"), Column("expected"), Column("ok"), Column("observed")], as_json=args.json,
+         meta={"all_ok": all(r["ok"] for r in rows)},
+         title="Faults injected into train.py (smoke budget): what was expected, what happened")
     return rows
 
 

@@ -1,14 +1,16 @@
 """ORCA agreement with RVO2, per branch: the 260 reference cases and fresh pyrvo scenes.
 
     python experiments/orca_agreement.py          # needs pyrvo (installed by `make install`)
+    python experiments/orca_agreement.py --json
 
 Uses the same scenes (:mod:`crowdrl.testing`) and exclusions as ``tests/test_orca.py`` (which
-asserts |dv| <= 1e-4) and prints the measured worst |dv|, how many agents were bit-exact, and the
-largest float32 speed.
+asserts |dv| <= 1e-4) and prints, per set and branch, the measured worst |dv| and how many agents
+were bit-exact, then the agents excluded as ill-conditioned and the largest float32 speed.
 """
 
 from __future__ import annotations
 
+import argparse
 import gzip
 import json
 from pathlib import Path
@@ -16,14 +18,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.orca import orca_solve
 from crowdrl.testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_json_argument(parser)
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    rows = []
     cases = json.load(gzip.open(ROOT / "tests" / "data" / "orca_cases.json.gz", "rt"))["cases"]
     worst = {"feasible": [0.0, 0, 0], "fallback": [0.0, 0, 0]}
     for c in cases:
@@ -39,7 +46,9 @@ def main() -> None:
                 w = worst[branch]
                 w[0], w[1], w[2] = max(w[0], err[m].max()), w[1] + int(m.sum()), w[2] + int((err[m] == 0).sum())
     for b, (e, n, exact) in worst.items():
-        print(f"reference cases, {b:<8}: worst |dv| {e:.2e} m/s over {n} agents ({exact} bit-exact)")
+        rows.append({"set": f"reference cases ({len(cases)})", "branch": b, "worst_dv": float(e), "agents": n,
+                     "bit_exact": exact})
+    log("reference cases done")
 
     fresh = {"feasible": [0.0, 0], "fallback": [0.0, 0]}
     n_sens = n_all = 0
@@ -65,9 +74,16 @@ def main() -> None:
                     fresh[branch][0] = max(fresh[branch][0], err[m].max())
                     fresh[branch][1] += int(m.sum())
     for b, (e, n) in fresh.items():
-        print(f"fresh scenes (4 kinds x 300), {b:<8}: worst |dv| {e:.2e} m/s over {n} agents")
-    print(f"ill-conditioned agents excluded (float64 moves them > {ORCA_TOLERANCE}): {n_sens}/{n_all}")
-    print(f"largest float32 speed returned (max speed 1 m/s): {max_speed:.4f} m/s")
+        rows.append({"set": f"fresh scenes ({len(KINDS)} kinds x 300)", "branch": b, "worst_dv": float(e), "agents": n,
+                     "bit_exact": None})
+    columns = [Column("set"), Column("branch"), Column("worst_dv", "worst |dv| (m/s)", ".2e"), Column("agents"),
+               Column("bit_exact", "bit-exact")]
+    meta = {"tolerance": ORCA_TOLERANCE, "excluded_ill_conditioned": n_sens, "fresh_agents": n_all,
+            "max_float32_speed": max_speed}
+    return emit(rows, columns=columns, meta=meta, as_json=args.json,
+                title="ORCA agreement with RVO2 per branch (feasible LP, 3-D fallback); ill-conditioned agents excluded",
+                notes=[f"Ill-conditioned agents excluded (float64 moves them > {ORCA_TOLERANCE}): {n_sens}/{n_all}; "
+                       f"largest float32 speed returned (max speed 1 m/s): {max_speed:.4f} m/s"])
 
 
 if __name__ == "__main__":

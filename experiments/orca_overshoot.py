@@ -12,11 +12,11 @@ ORCA, with the number of agents above 1 m/s and above 1.01 m/s.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 import torch
 
+from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.orca import orca_velocities
 from crowdrl.testing import random_scene, rvo2_velocities
 
@@ -47,23 +47,22 @@ def measure(n: int, scenes: int, seed: int) -> dict[str, float | int]:
 def main(argv: list[str] | None = None) -> list[dict[str, float | int]]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=3000, help="random scenes per crowd size")
-    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    add_json_argument(parser)
     args = parser.parse_args(argv)
     if args.scenes < 1:
         parser.error(f"--scenes must be >= 1, got {args.scenes}")
     torch.set_num_threads(1)
-    rows = [measure(n, args.scenes, seed=1000 + n) for n in SIZES]
-    if args.json:
-        print(json.dumps(rows, indent=2))
-        return rows
-    agents = lambda r: r["N"] * r["scenes"]  # noqa: E731
-    print(f"max speed returned (limit 1 m/s) over {args.scenes} scenes per N; "
-          "in brackets: agents above 1 m/s / above 1.01 m/s")
-    print(f"{'N':>3} {'agents':>7}  {'ours float32':>20}  {'RVO2 (pyrvo)':>20}  {'ours float64':>20}")
-    for r in rows:
-        cells = [f"{r[f'max_{k}']:.4f} ({r[f'over_{k}']}/{r[f'over_1.01_{k}']})"
-                 for k in ("ours_f32", "rvo2", "ours_f64")]
-        print(f"{r['N']:>3} {agents(r):>7}  " + "  ".join(f"{c:>20}" for c in cells))
+    rows = []
+    for n in SIZES:
+        rows.append(measure(n, args.scenes, seed=1000 + n))
+        log(f"N={n}: RVO2 max speed {rows[-1]['max_rvo2']:.4f} m/s")
+    cell = lambda k: Column(lambda r: f"{r[f'max_{k}']:.4f} ({r[f'over_{k}']}/{r[f'over_1.01_{k}']})",  # noqa: E731
+                            {"ours_f32": "ours float32", "rvo2": "RVO2 (pyrvo)", "ours_f64": "ours float64"}[k])
+    columns = [Column("N"), Column(lambda r: r["N"] * r["scenes"], "agents"), cell("ours_f32"), cell("rvo2"),
+               cell("ours_f64")]
+    emit(rows, columns=columns, as_json=args.json, meta={"scenes": args.scenes, "limit_m_s": 1.0, **PARAMS},
+         title=f"Max speed returned (limit 1 m/s) over {args.scenes} scenes per N; in parentheses: agents above "
+               "1 m/s / above 1.01 m/s")
     return rows
 
 

@@ -1,5 +1,5 @@
 """Crowds of variable size: each episode draws its size, absent humans are masked everywhere, and
-one network serves any crowd (issue: encoders and any crowd size)."""
+one network serves any crowd."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Run folders never lie (issue 25): a refused run changes nothing in a folder and removes only what
+"""Run folders never lie (docs/reliability.md): a refused run changes nothing in a folder and removes only what
 it created; one writer per folder (and per reproduce.py out=), locked before the first write; a
 finished run stays finished; default folders are unique; seeds stay within 0..2**63-1; settings
 that would exhaust memory, bad evaluate.py input and non-finite weights or simulator inputs are

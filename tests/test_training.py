@@ -324,7 +324,8 @@ def test_bench_train_reports_rates_and_ratios():
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
-    first, second = out["results"]
+    assert out["meta"]["num_envs"] == 4
+    first, second = out["rows"]
     for r in (first, second):
         assert r["loss"] == "eager" and r["collect_frames_per_s"] > 0 and r["update_ms"] > 0
         assert r["update_ms"] == pytest.approx(sum(r["update_breakdown_ms"].values()))
