@@ -15,13 +15,15 @@ network values standing still about as much as anything else).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchkit import Column, add_json_argument, emit  # noqa: E402
 
 STILL_STEPS = 40  # "stood still": mean speed below STILL_SPEED over the last STILL_STEPS steps
 STILL_SPEED = 0.1  # m/s
@@ -102,7 +104,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--planning", choices=("on", "off", "both"), default="both",
                    help="act through the run's planner, the Q network alone, or both (default)")
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--json", action="store_true", help="print the rows as JSON instead of a table")
+    add_json_argument(p)
     args = p.parse_args(argv)
     if args.episodes < 1 or args.threads < 1:
         p.error("--episodes and --threads must be >= 1")
@@ -119,20 +121,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows = [{"checkpoint": str(args.checkpoint), "planning": m, **describe(rollout(run, net, predictor, planning=m,
                                                                                     episodes=args.episodes))}
             for m in modes]
-    if args.json:
-        print(json.dumps(rows, indent=1))
-    else:
-        print(f"{args.checkpoint}: {args.episodes} validation cases (seed {run.seed}); timed-out episodes described")
-        print("| planning | success | collision | timeout | goal dist. at end | closest | stood still | goal behind "
-              "| max Q − Q(stop) |")
-        print("|---|---|---|---|---|---|---|---|---|")
-        for r in rows:
-            n = r["episodes"]
-            extra = [f"{r[k]:.2f}" if k in r else "–" for k in ("timeout_goal_distance_median", "timeout_closest_median")]
-            extra += [f"{r[k]:.0%}" if k in r else "–" for k in ("timeout_stood_still", "timeout_goal_behind")]
-            extra += [f"{r['timeout_q_gap_to_stop_median']:.4f}" if "timeout_q_gap_to_stop_median" in r else "–"]
-            print(f"| {'on' if r['planning'] else 'off'} | {r['success'] / n:.2f} | {r['collision'] / n:.2f} "
-                  f"| {r['timeout'] / n:.2f} | " + " | ".join(extra) + " |")
+    pct = lambda v: f"{v:.0%}"  # noqa: E731
+    emit(rows, columns=[Column(lambda r: "on" if r["planning"] else "off", "planning"),
+                        *[Column(lambda r, k=k: r[k] / r["episodes"], k, ".2f") for k in ("success", "collision", "timeout")],
+                        Column("timeout_goal_distance_median", "goal dist. at end (m)", ".2f"),
+                        Column("timeout_closest_median", "closest (m)", ".2f"),
+                        Column("timeout_stood_still", "stood still", pct), Column("timeout_goal_behind", "goal behind", pct),
+                        Column("timeout_q_gap_to_stop_median", "max Q − Q(stop)", ".4f")],
+         title=f"{args.checkpoint}: {args.episodes} validation cases (seed {run.seed}); timed-out episodes described",
+         meta={"checkpoint": str(args.checkpoint), "episodes": args.episodes, "seed": run.seed}, as_json=args.json)
     return rows
 
 

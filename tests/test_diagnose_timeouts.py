@@ -67,4 +67,4 @@ def test_a_pretrained_agent_is_diagnosed_with_and_without_its_planner(capsys):
     assert [r["planning"] for r in rows] == [True, False]
     for r in rows:
         assert r["success"] + r["collision"] + r["timeout"] == r["episodes"] == 6
-    assert json.loads(capsys.readouterr().out) == rows
+    assert json.loads(capsys.readouterr().out)["rows"] == rows
