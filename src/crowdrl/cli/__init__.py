@@ -1,18 +1,15 @@
-"""The command lines, installed as console scripts (``pip install .[train]``):
+"""The command lines. Each is a module with a ``main()``, installed as a console script
+(``pip install ".[train]"``), runnable as ``python -m crowdrl.cli.<name>``, and wrapped in a checkout
+by ``experiments/<name>.py``:
 
-========================  ==========================  ==================================
-console script            module                      checkout script (same thing)
-========================  ==========================  ==================================
-``crowdrl-train``         :mod:`crowdrl.cli.train`     ``experiments/train.py``
-``crowdrl-evaluate``      :mod:`crowdrl.cli.evaluate`  ``experiments/evaluate.py``
-``crowdrl-reproduce``     :mod:`crowdrl.cli.reproduce` ``experiments/reproduce.py``
-``crowdrl-demo``          :mod:`crowdrl.cli.demo`      ``experiments/demo.py``
-``crowdrl-export``        :mod:`crowdrl.cli.export`    ``experiments/export.py``
-========================  ==========================  ==================================
+- ``crowdrl-train``: :mod:`crowdrl.cli.train` (``experiments/train.py``)
+- ``crowdrl-evaluate``: :mod:`crowdrl.cli.evaluate` (``experiments/evaluate.py``)
+- ``crowdrl-reproduce``: :mod:`crowdrl.cli.reproduce` (``experiments/reproduce.py``)
+- ``crowdrl-demo``: :mod:`crowdrl.cli.demo` (``experiments/demo.py``)
+- ``crowdrl-export``: :mod:`crowdrl.cli.export` (``experiments/export.py``; the ``export`` extra)
 
-Each also runs as ``python -m crowdrl.cli.<name>``. The configs come from the package
-(:func:`crowdrl.resources.config_dir`), never from the current directory; what they write
-(``runs/``, ``results/``, ``multirun/``) is relative to the current directory.
+The configs come from the package (:func:`crowdrl.resources.config_dir`), never from the current
+directory; what the commands write (``runs/``, ``multirun/``, ``results/``) is relative to it.
 """
 
 from __future__ import annotations
