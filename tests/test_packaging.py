@@ -114,3 +114,31 @@ def test_the_citation_file_cites_this_software_and_the_paper():
     assert [a["family-names"] for a in paper["authors"]] == ["Martinez-Baselga", "Riazuelo", "Montano"]
     assert paper["year"] == 2023 and "ICRA" in paper["conference"]["name"] and "2302.06554" in paper["url"]
     assert "crowdrl contributors" in (ROOT / "LICENSE").read_text()
+
+
+def test_a_missing_optional_dependency_names_the_extra_to_install():
+    """The base install is the library; what needs the ``train`` extra says so when it is absent."""
+    code = """
+import sys
+import numpy as np
+sys.modules["matplotlib"] = None   # as if not installed
+sys.modules["rliable"] = None
+try:
+    import crowdrl.viz
+except ImportError as exc:
+    print("viz:", exc)
+from crowdrl.evaluation.stats import mean_interval
+try:
+    mean_interval({"a": np.zeros(2)})
+except ImportError as exc:
+    print("stats:", exc)
+import crowdrl.envs, crowdrl.exploration, crowdrl.training   # the library itself imports without them
+print("library: ok")
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("viz: crowdrl.viz") and "matplotlib" in lines[0], lines
+    assert lines[1].startswith("stats: confidence intervals") and "rliable" in lines[1], lines
+    assert all("pip install 'crowdrl[train]'" in line for line in lines[:2]), lines
+    assert lines[2] == "library: ok", lines
