@@ -13,6 +13,12 @@ import numpy as np
 
 
 def _quiet_rliable():
+    try:
+        import rliable  # noqa: F401
+    except ImportError as exc:
+        from crowdrl._extras import missing
+
+        raise missing("rliable", "train", "confidence intervals over seeds") from exc
     from absl import logging as absl_logging
     from rliable import library as rly
 
@@ -49,9 +55,9 @@ def mean_interval(scores: dict[str, np.ndarray], *, reps: int = 2000, confidence
 def probability_of_improvement(x: np.ndarray, y: np.ndarray, *, reps: int = 2000, confidence: float = 0.95,
                                seed: int = 0) -> tuple[float, float, float]:
     """``P(X > Y)`` over seeds of two methods (ties count half) with its bootstrap CI."""
+    rly = _quiet_rliable()
     from rliable import metrics
 
-    rly = _quiet_rliable()
     x = np.asarray(x, dtype=np.float64).reshape(-1, 1)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 1)
     with warnings.catch_warnings():

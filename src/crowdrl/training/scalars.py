@@ -73,7 +73,12 @@ class WandbMirror:
     """Mirror of the scalar rows into a wandb run (offline unless the mode says otherwise)."""
 
     def __init__(self, run_dir: Path, config: dict, project: str, mode: str, resume_id: str | None) -> None:
-        import wandb
+        try:
+            import wandb
+        except ImportError as exc:
+            from crowdrl._extras import missing
+
+            raise missing("wandb", "train", "logger=wandb (logger=csv does without)") from exc
 
         os.environ.setdefault("WANDB_SILENT", "true")
         mode = os.environ.get("WANDB_MODE", mode)

@@ -398,7 +398,12 @@ def _finished_episodes(batch: TensorDictBase) -> list[tuple[int, float, int, flo
 def _progress(enabled: bool, total: int, initial: int):
     if not enabled:
         return None
-    from tqdm.auto import tqdm
+    try:
+        from tqdm.auto import tqdm
+    except ImportError as exc:
+        from crowdrl._extras import missing
+
+        raise missing("tqdm", "train", "the progress bar (logger.progress_bar=false does without)") from exc
 
     return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 

@@ -1,5 +1,13 @@
 """Rendering: episode PNG summaries, animated GIFs, single RGB frames, learning curves."""
 
+try:
+    import matplotlib  # noqa: F401
+except ImportError as exc:
+    from crowdrl._extras import missing
+
+    raise missing("matplotlib", "train", "crowdrl.viz (figures, GIFs, render_mode='rgb_array'; "
+                  "logger.render=false does without)") from exc
+
 from crowdrl.viz.curves import plot_learning_curves
 from crowdrl.viz.frame import render_frame
 from crowdrl.viz.results import ema, plot_intervals, plot_seed_curves

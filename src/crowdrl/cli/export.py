@@ -1,0 +1,81 @@
+"""Export a trained checkpoint's greedy Q policy as an ONNX model, for robots (Hydra entry point:
+``crowdrl-export``, ``python -m crowdrl.cli.export`` or ``python experiments/export.py`` in a checkout;
+needs the ``export`` extra: onnx, onnxruntime).
+
+    python experiments/export.py checkpoint=runs/<folder> out=policy.onnx      # its checkpoints/best.pt
+    python experiments/export.py checkpoint=path/to/best.pt out=models/policy.onnx opset=17
+
+Inputs, outputs and metadata: ``docs/export.md`` and :mod:`crowdrl.export`. A checkpoint trained
+with online planning exports its Q policy only (it says so, here and in the model's metadata).
+``experiments/onnx_example.py`` runs the model with numpy and onnxruntime alone. A bad argument
+(checkpoint, out, format, opset) exits with code 2 and a message naming it.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from crowdrl.resources import config_dir
+
+# the check runs the torch policy a few times: compiling SG-D3QN's pairwise kernel for that would
+# cost more than it saves (up to a minute on first use)
+os.environ.setdefault("CROWDRL_PAIRWISE", "eager")
+
+CONF_DIR = str(config_dir())
+
+
+def fail(message: str) -> None:
+    print(f"export.py: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+@hydra.main(config_path=CONF_DIR, config_name="export", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    c = OmegaConf.to_container(cfg, resolve=True)
+    from crowdrl.export import FORMATS
+    from crowdrl.training.config import unknown_keys
+
+    known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "export.yaml"))
+    known.pop("defaults", None)
+    bad = unknown_keys(c, known)  # a key added with + that nothing reads (Hydra refuses other unknown keys)
+    if bad:
+        fail(f"{', '.join(bad)}: not read by export.py (unknown key); allowed: {', '.join(sorted(known))}")
+
+    if c["format"] not in FORMATS:
+        fail(f"format: got {c['format']!r}; allowed: {', '.join(FORMATS)}")
+    if not c["checkpoint"]:
+        fail("checkpoint: required (a run folder or a .pt file), e.g. checkpoint=runs/<folder>")
+    if not c["out"]:
+        fail("out: required (the .onnx file to write), e.g. out=policy.onnx")
+    if isinstance(c["opset"], bool) or not isinstance(c["opset"], int) or not 14 <= c["opset"] <= 20:
+        fail(f"opset: got {c['opset']!r}; an integer in 14..20")
+
+    from crowdrl.export import export_onnx
+    from crowdrl.training import CheckpointError
+
+    try:
+        info = export_onnx(c["checkpoint"], c["out"], opset=c["opset"], check=bool(c["check"]))
+    except CheckpointError as exc:
+        fail(f"checkpoint: {exc}")
+    except ValueError as exc:  # export_onnx names the argument (out)
+        fail(str(exc))
+    except RuntimeError as exc:  # onnx missing, or the written model disagrees with torch
+        print(f"export.py: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
+    for note in info.notes:
+        print(f"NOTE: {note}")
+    m = info.metadata
+    checked = f", Q within {info.max_q_error:.1e} of torch (onnxruntime)" if info.max_q_error is not None else ""
+    print(f"wrote {info.path} ({m['crowdrl.encoder']}, {m['crowdrl.exploration']}, humans: {m['crowdrl.humans']}, "
+          f"planning: {m['crowdrl.planning'].split(':')[0]}{checked})")
+    print(f"run it without torch: python experiments/onnx_example.py {info.path} (in a crowdrl checkout)")
+    return {"path": str(info.path), "planning_dropped": info.planning_dropped}
+
+
+if __name__ == "__main__":  # python -m crowdrl.cli.export
+    main()
