@@ -185,6 +185,9 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     given = {"robot_velocity": robot_velocity} if robot_heading is None else {"robot_velocity": robot_velocity,
                                                                              "robot_heading": robot_heading}
     require_finite(**given, **{"state.robot_position": state.robot_position, "state.robot_goal": state.robot_goal})
+    if state.has_obstacles and (state.obstacles.device != state.device or state.obstacle_mask.device != state.device):
+        raise ValueError(f"state.obstacles is on {state.obstacles.device} (mask on {state.obstacle_mask.device}) "
+                         f"but the agents are on {state.device}")
     if robot_heading is None:
         speed = torch.linalg.vector_norm(robot_velocity, dim=-1)
         robot_heading = torch.where(

@@ -26,7 +26,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["ObstacleEdges", "process_obstacles", "MAX_TREE_DEPTH", "check_obstacles", "obstacle_segments",
-           "segment_distance", "point_obstacle_distance", "path_obstacle_distance"]
+           "segment_distance", "point_obstacle_distance", "path_obstacle_distance", "select_edges", "pad_edges",
+           "put_edges"]
 
 _EPSILON = 1e-5  # RVO2's RVO_EPSILON, as in crowdrl.sim.orca
 MAX_TREE_DEPTH = 39  # obstacle kd-tree levels supported (the traversal key is a base-3 int64)
@@ -286,6 +287,44 @@ def process_obstacles(obstacles: Tensor, obstacle_mask: Tensor | None = None) ->
     anc = inverse.gather(1, g(anc).reshape(B, -1)).view(B, E, anc.shape[-1]) if anc.shape[-1] else g(anc)
     return ObstacleEdges(g(start), g(end), g(direction), g(prev_dir), g(next_dir), g(start_convex), g(end_convex),
                          g(valid), anc, g(side), g(depth))
+
+
+def select_edges(edges: ObstacleEdges, idx) -> ObstacleEdges:
+    """The scenes ``idx`` (an index or slice of the batch dimension) of ``edges``."""
+    return ObstacleEdges(*(t[idx] for t in edges))
+
+
+def pad_edges(edges: ObstacleEdges, num_edges: int, depth: int) -> ObstacleEdges:
+    """``edges`` padded with invalid edges to ``num_edges`` and with unused kd-tree levels to ``depth``
+    (padding is ignored by the solver: the same velocities, bit for bit)."""
+    B, E = edges.valid.shape
+    D = edges.ancestors.shape[-1]
+    if num_edges < E or depth < D:
+        raise ValueError(f"cannot pad {E} edges of depth {D} to {num_edges} edges of depth {depth}")
+
+    def pad(t: Tensor) -> Tensor:
+        if t is edges.ancestors or t is edges.in_left:
+            out = t.new_zeros(B, num_edges, depth)
+            out[:, :E, :D] = t
+            return out
+        out = t.new_zeros((B, num_edges) + t.shape[2:])
+        out[:, :E] = t
+        return out
+    return ObstacleEdges(*(pad(t) for t in edges))
+
+
+def put_edges(edges: ObstacleEdges, idx: Tensor, new: ObstacleEdges) -> ObstacleEdges:
+    """``edges`` with the scenes ``idx [K]`` replaced by ``new`` (``K`` scenes), both padded to the
+    larger edge count and tree depth."""
+    E = max(edges.num_edges, new.num_edges)
+    D = max(edges.ancestors.shape[-1], new.ancestors.shape[-1])
+    edges, new = pad_edges(edges, E, D), pad_edges(new, E, D)
+    out = []
+    for t, n in zip(edges, new):
+        t = t.clone()
+        t[idx] = n
+        out.append(t)
+    return ObstacleEdges(*out)
 
 
 # --- plain geometry of the polygons (collision checks and spawn clearance; not ORCA) -------------
