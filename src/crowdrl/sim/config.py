@@ -10,6 +10,9 @@ from crowdrl.sim.kinematics import KINEMATICS
 SCENARIOS = ("circle", "square", "corridor", "doorway", "room")
 OPEN_SCENARIOS = ("circle", "square")  # no obstacles: the paper's scenarios
 OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdrl.sim.scenarios)
+# CrowdConfig's obstacle geometry keys (the Hydra env group's keys of the same names)
+OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
+                 "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst")
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 

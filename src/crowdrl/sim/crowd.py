@@ -46,6 +46,35 @@ def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
     return torch.where(dist > 1, to_goal / dist.clamp_min(1e-12), to_goal)
 
 
+def doorway_waypoints(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tensor:
+    """``doorway``: where a human heads for, ``[..., 2]``: its goal once on the goal's side of the wall,
+    before that the point of the gap (``y = 0``, ``|x| <= doorway_gap / 2 - human_radius - margin``)
+    nearest to where its straight line to the goal crosses the wall's line. A pure function of the
+    position and goal (no state): on a straight line through the gap it is a point of that line, so
+    the human walks straight as without it; a human pushed off its line walks back into the gap
+    instead of pressing against the wall (ORCA avoids obstacles but does not plan around them)."""
+    py, gy = position[..., 1], goal[..., 1]
+    crossing = py * gy < 0
+    t = py / torch.where(crossing, py - gy, torch.ones_like(py))
+    x = position[..., 0] + t * (goal[..., 0] - position[..., 0])
+    inner = cfg.doorway_gap / 2 - cfg.human_radius - cfg.obstacle_clearance_margin
+    waypoint = torch.stack((x.clamp(-inner, inner), torch.zeros_like(x)), -1)
+    return torch.where(crossing.unsqueeze(-1), waypoint, goal)
+
+
+def human_preferred_velocities(cfg: CrowdConfig, state: CrowdState) -> Tensor:
+    """The humans' preferred velocities: :func:`human_preferred_velocity` towards the goal; in
+    ``doorway`` the same speed, towards :func:`doorway_waypoints` (the gap) while the wall is between
+    a human and its goal."""
+    pref = human_preferred_velocity(state.human_position, state.human_goal)
+    if cfg.scenario != "doorway":
+        return pref
+    to = doorway_waypoints(cfg, state.human_position, state.human_goal) - state.human_position
+    dist = torch.linalg.vector_norm(to, dim=-1, keepdim=True)
+    speed = torch.linalg.vector_norm(pref, dim=-1, keepdim=True)
+    return torch.where(dist > 1e-6, to / dist.clamp_min(1e-12) * speed, pref)
+
+
 def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdges | None = None
                      ) -> tuple[Tensor, Tensor]:
     """ORCA velocities of the humans among themselves (the robot is invisible to them); absent
@@ -65,7 +94,7 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: Obstac
     sol = solve(
         state.human_position,
         state.human_velocity,
-        human_preferred_velocity(state.human_position, state.human_goal),
+        human_preferred_velocities(cfg, state),
         radius,
         torch.full_like(radius, cfg.human_v_pref),
         time_step=cfg.time_step,

@@ -28,7 +28,11 @@ Reachability: the humans' ORCA avoids obstacles but does not plan around them, s
 and goal (and every later goal of a non-stop human) are drawn such that the straight line between
 them keeps ``human_radius + margin`` from every obstacle edge (``margin`` =
 ``CrowdConfig.obstacle_clearance_margin``, the discomfort distance): in ``doorway`` that line goes
-through the gap. Spawns and goals keep the same clearance from the obstacles (the robot's start and
+through the gap. In ``doorway`` a human pushed off that line (by the crowd at the door) would press
+against the wall, so until it has crossed the wall's line it heads for a waypoint in the gap
+(:func:`crowdrl.sim.crowd.doorway_waypoints`, a pure function of its position and goal; on the
+straight line it is a point of that line, so an unhindered human walks straight as before). Spawns
+and goals keep the same clearance from the obstacles (the robot's start and
 goal ``robot_radius + margin``). A draw failing after the bounded number of rounds raises
 :class:`SpawnError` naming the scenario and its keys.
 """
@@ -57,6 +61,7 @@ _MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 # Index tags keeping the purposes of random draws apart.
 _TAG_SPAWN, _TAG_NEW_GOAL, _TAG_CROWD_SIZE, _TAG_OBSTACLES = range(4)
 PILLAR_ROUNDS = 64  # candidates per room pillar; exhausting them is an error
+OBSTACLE_GOAL_ROUNDS = 64  # candidates per new goal in the obstacle scenarios (a clear straight path is rarer)
 _OBSTACLE_CHUNK = 32  # spawn rounds evaluated at once in the obstacle scenarios (speed only)
 # Where absent humans (a crowd smaller than its maximum) stand: far from everything, still.
 _PARKED = 1.0e4
@@ -487,21 +492,21 @@ def _obstacle_new_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor)
     """:func:`new_human_goals` of the obstacle scenarios: a goal on the other side (corridor: the other
     end; doorway: the other side of the wall; room: a random side, as in square) clear of the obstacles
     with a clear straight path from where the human stands, preferably also clear of every agent; a
-    human none of whose ``GOAL_ROUNDS`` candidates has a clear path keeps its goal (it asks again on
+    human none of whose ``OBSTACLE_GOAL_ROUNDS`` candidates has a clear path keeps its goal (it asks again on
     the next step, with new draws)."""
     dtype, device = state.human_goal.dtype, state.device
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
-    rounds = torch.arange(GOAL_ROUNDS, device=device).view(1, GOAL_ROUNDS, 1)
+    rounds = torch.arange(OBSTACLE_GOAL_ROUNDS, device=device).view(1, OBSTACLE_GOAL_ROUNDS, 1)
     comps = torch.arange(4, device=device).view(1, 1, 4)
-    index = (human.view(M, 1, 1) * GOAL_ROUNDS + rounds) * 4 + comps
+    index = (human.view(M, 1, 1) * OBSTACLE_GOAL_ROUNDS + rounds) * 4 + comps
     u = rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
                     index, dtype=dtype).unbind(-1)  # [M, R] each
     here = state.human_position[env, human]  # [M, 2]
     if cfg.scenario == "room":
         side = torch.where(u[3] > 0.5, -1.0, 1.0).to(dtype)
     else:  # towards the other end / the other side of the wall
-        side = torch.where(here[:, 1:2] > 0, -1.0, 1.0).to(dtype).expand(M, GOAL_ROUNDS)
+        side = torch.where(here[:, 1:2] > 0, -1.0, 1.0).to(dtype).expand(M, OBSTACLE_GOAL_ROUNDS)
     cand = _human_region(cfg, side, u[0], u[1], goal=True)  # [M, R, 2]
     obs, om = state.obstacles[env], state.obstacle_mask[env]
     clear = cfg.human_radius + cfg.obstacle_clearance_margin
