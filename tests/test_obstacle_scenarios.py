@@ -403,3 +403,41 @@ def test_hydra_bad_geometry_is_named():
 
     with pytest.raises(ConfigError, match="env.doorway_gap"):
         validate(_compose(["env=doorway", "env.doorway_gap=0.5", "logger=csv"]), resources=False)
+
+
+# --- rendering ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("scenario, artists", [("doorway", 2), ("room", 4)])
+def test_recorded_trajectories_draw_the_obstacles(tmp_path, scenario, artists):
+    from crowdrl.envs.crowd_nav import CrowdNavEnv
+    from crowdrl.evaluation.rollout import evaluate
+    from crowdrl.viz.trajectory import OBSTACLE_GID, animate_trajectory, plot_trajectory
+
+    env = CrowdNavEnv(scenario, num_envs=2, num_humans=3, split="test")
+    straight = lambda td: td.set("action", torch.zeros(2, dtype=torch.int64))  # noqa: E731
+    _, traj = evaluate(env, straight, num_episodes=2, record_episode=1)
+    expected = initial_states(env.config, rng.episode_keys("test", 0, torch.tensor([1]))).obstacles[0]
+    assert len(traj.obstacles) == artists
+    assert all(torch.equal(torch.from_numpy(p).float(), e) for p, e in zip(traj.obstacles, expected))
+    fig = plot_trajectory(traj, tmp_path / "t.png")
+    ax = fig.axes[0]
+    drawn = [a for a in (*ax.lines, *ax.patches) if a.get_gid() == OBSTACLE_GID]
+    assert len(drawn) == artists and (tmp_path / "t.png").stat().st_size > 0
+    lo, hi = ax.get_xlim()
+    assert lo <= expected[..., 0].min() and hi >= expected[..., 0].max()  # the limits include them
+    short = type(traj)(**{**traj.__dict__, "robot_positions": traj.robot_positions[:3],
+                          "human_positions": traj.human_positions[:3], "human_goals": traj.human_goals[:3],
+                          "robot_headings": traj.robot_headings[:3]})
+    animate_trajectory(short, tmp_path / "t.gif")
+    assert (tmp_path / "t.gif").stat().st_size > 0
+
+
+def test_trajectory_refuses_bad_obstacles():
+    from crowdrl.evaluation.trajectory import Trajectory
+
+    base = dict(robot_positions=[[0.0, 0.0]], robot_goal=[0.0, 1.0], robot_radius=0.3,
+                human_positions=[[[1.0, 1.0]]], human_goals=[[[2.0, 2.0]]], human_radius=0.3, time_step=0.25)
+    with pytest.raises(ValueError, match=r"obstacles\[0\]: expected shape \[n >= 2, 2\]"):
+        Trajectory(**base, obstacles=([[0.0, 0.0]],))
+    with pytest.raises(ValueError, match=r"obstacles\[1\]: contains non-finite"):
+        Trajectory(**base, obstacles=([[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.0], [float("nan"), 0.0]]))
