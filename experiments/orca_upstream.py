@@ -22,7 +22,7 @@ import torch
 
 from benchkit import Column, add_json_argument, emit, log
 from crowdrl.evaluation import evaluate_orca
-from crowdrl.sim.config import SCENARIOS, CrowdConfig
+from crowdrl.sim.config import OPEN_SCENARIOS, SCENARIOS, CrowdConfig
 
 # Upstream's ORCA row (docs/mdp.md, "ORCA robot baseline"): return, success, collision, navigation time.
 UPSTREAM = {"circle": (0.3315, 0.769, 0.222, 13.880), "square": (0.4417, 0.840, 0.151, 12.856)}
@@ -30,7 +30,7 @@ UPSTREAM = {"circle": (0.3315, 0.769, 0.222, 13.880), "square": (0.4417, 0.840, 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    p.add_argument("--scenarios", nargs="+", default=list(OPEN_SCENARIOS), choices=SCENARIOS)
     p.add_argument("--episodes", type=int, default=1000, help="test cases 0..episodes-1 (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="test stream seed (default 0)")
     p.add_argument("--num-humans", type=int, default=10)

@@ -91,7 +91,7 @@ def test_robot_centric_transform_in_env_and_on_batches():
 @pytest.mark.parametrize(
     "kwargs, word",
     [
-        (dict(scenario="corridor"), "scenario"),
+        (dict(scenario="maze"), "scenario"),
         (dict(num_humans=0), "num_humans"),
         (dict(num_envs=0), "num_envs"),
         (dict(split="holdout"), "split"),

@@ -217,7 +217,7 @@ def test_nstep_rejects_bad_n():
     [
         ({"encoder": {"name": "transformer"}}, "encoder.name"),
         ({"exploration": {"name": "boltzmann"}}, "exploration.name"),
-        ({"env": {"scenario": "corridor"}}, "env.scenario"),
+        ({"env": {"scenario": "maze"}}, "env.scenario"),
         ({"env": {"num_humans": 0}}, "env.num_humans"),
         ({"train": {"total_frames": 0}}, "train.total_frames"),
         ({"train": {"total_frames": -5}}, "train.total_frames"),

@@ -11,6 +11,7 @@ from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
+from crowdrl.sim.obstacles import ObstacleEdges, process_obstacles, put_edges, select_edges
 from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
@@ -92,6 +93,10 @@ class CrowdNavEnv(EnvBase):
         self._queued: torch.Tensor | None = None
         self._restored: dict[str, torch.Tensor] | None = None
         self._spawned: tuple[int, CrowdState] | None = None  # (first episode id, states) spawned ahead
+        # obstacle scenarios: the processed obstacle edges (RVO2's processObstacles) of the spawned block
+        # and of the episodes in flight, so that a step never processes them (None: not yet / open scenario)
+        self._block_edges: ObstacleEdges | None = None
+        self._edges: ObstacleEdges | None = None
         self._actions = action_table(config.robot_v_pref, dtype=dtype, device=self.device)
         self.state: CrowdState | None = None
         self._make_specs()
@@ -163,6 +168,11 @@ class CrowdNavEnv(EnvBase):
         tensors = dict(snapshot.get("tensors", {}))
         if "state.human_mask" not in tensors and "state.human_position" in tensors:  # written before crowds varied
             tensors["state.human_mask"] = torch.ones(tensors["state.human_position"].shape[:2], dtype=torch.bool)
+        if "state.obstacles" not in tensors and "state.robot_position" in tensors:  # written before obstacles
+            B, (P, V) = tensors["state.robot_position"].shape[0], self.config.obstacles_shape
+            if P == 0:
+                tensors["state.obstacles"] = torch.zeros(B, 0, V, 2, dtype=tensors["state.robot_position"].dtype)
+                tensors["state.obstacle_mask"] = torch.zeros(B, 0, V, dtype=torch.bool)
         missing = {f"state.{n}" for n in CrowdState.__dataclass_fields__} - set(tensors)
         if missing:
             raise ValueError(f"the snapshot lacks {sorted(missing)}")
@@ -211,6 +221,7 @@ class CrowdNavEnv(EnvBase):
         self._next_episode = 0
         self._restored = None  # a new stream starts over
         self._spawned = None
+        self._block_edges = None
         return seed
 
     def _observation(self, state: CrowdState, min_sep, discomfort, event, episode_id) -> TensorDict:
@@ -255,13 +266,15 @@ class CrowdNavEnv(EnvBase):
             k = int(reset_mask.sum())
             ids = torch.zeros(B, dtype=torch.int64, device=self.device)
             ids[reset_mask] = torch.arange(self._next_episode, self._next_episode + k, device=self.device)
-            fresh = self._stream_states(self._next_episode, k)
+            fresh, fresh_edges = self._stream_states(self._next_episode, k)
             self._next_episode += k
         else:
             fresh = initial_states(self.config, rng.episode_keys(self.split, self._seed, ids[reset_mask]),
                                    dtype=self.dtype)
+            fresh_edges = process_obstacles(fresh.obstacles, fresh.obstacle_mask) if fresh.has_obstacles else None
         if mask is None:
             self.state = fresh
+            self._edges = fresh_edges
             self._episode_id = ids.clone()
             self._return = torch.zeros(B, dtype=self.dtype, device=self.device)
             self._last = (
@@ -273,6 +286,8 @@ class CrowdNavEnv(EnvBase):
             idx = reset_mask.nonzero(as_tuple=True)[0]
             for name in CrowdState.__dataclass_fields__:
                 getattr(self.state, name)[idx] = getattr(fresh, name)
+            if fresh_edges is not None:  # only the reset episodes' obstacles change
+                self._edges = None if self._edges is None else put_edges(self._edges, idx, fresh_edges)
             self._episode_id = torch.where(reset_mask, ids, self._episode_id)
             self._return = torch.where(reset_mask, 0.0, self._return)
             min_sep, discomfort, event = self._last
@@ -283,15 +298,20 @@ class CrowdNavEnv(EnvBase):
             )
         return self._reset_output()
 
-    def _stream_states(self, first: int, k: int) -> CrowdState:
-        """Initial states of episodes ``first .. first+k-1`` of the stream, from the block spawned ahead."""
+    def _stream_states(self, first: int, k: int) -> tuple[CrowdState, ObstacleEdges | None]:
+        """Initial states of episodes ``first .. first+k-1`` of the stream, from the block spawned ahead,
+        and their processed obstacle edges (``None`` without obstacles), processed with the block."""
         start, block = self._spawned if self._spawned is not None else (-1, None)
         if block is None or first < start or first + k > start + block.batch_size:
             ids = torch.arange(first, first + max(k, self.spawn_block), device=self.device)
             block = initial_states(self.config, rng.episode_keys(self.split, self._seed, ids), dtype=self.dtype)
             start, self._spawned = first, (first, block)
-        part = block.index(slice(first - start, first - start + k))
-        return CrowdState(**{name: getattr(part, name).clone() for name in CrowdState.__dataclass_fields__})
+            self._block_edges = (process_obstacles(block.obstacles, block.obstacle_mask) if block.has_obstacles
+                                 else None)
+        rows = slice(first - start, first - start + k)
+        part = block.index(rows)
+        edges = None if self._block_edges is None else select_edges(self._block_edges, rows)
+        return CrowdState(**{name: getattr(part, name).clone() for name in CrowdState.__dataclass_fields__}), edges
 
     def _reset_output(self) -> TensorDictBase:
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))
@@ -303,6 +323,7 @@ class CrowdNavEnv(EnvBase):
         """The reset after :meth:`restore`: the snapshot's episodes, as they were."""
         t, self._restored = self._restored, None
         self.state = CrowdState(**{name: t[f"state.{name}"] for name in CrowdState.__dataclass_fields__})
+        self._edges = None  # processed again on the first step
         self._episode_id, self._return = t["episode_id"], t["episode_reward"]
         self._last = (t["min_separation"], t["discomfort_count"], t["event"])
         return self._reset_output()
@@ -321,7 +342,9 @@ class CrowdNavEnv(EnvBase):
                 action = action.squeeze(-1)
         velocity, heading = decode_action(kinematics, action, self.state.robot_heading, self._actions,
                                           self.config.robot_v_pref)
-        self.state, res = step(self.config, self.state, velocity, heading)
+        if self.state.has_obstacles and self._edges is None:
+            self._edges = process_obstacles(self.state.obstacles, self.state.obstacle_mask)
+        self.state, res = step(self.config, self.state, velocity, heading, obstacle_edges=self._edges)
         self._return = self._return + res.reward
         self._last = (res.min_separation, res.discomfort_count, res.event)
         out = self._observation(self.state, *self._last, self._episode_id.unsqueeze(-1))

@@ -116,7 +116,8 @@ def evaluate(
         if record_episode is not None and first <= record_episode < first + n:
             row = record_episode - first
             trajectory = recorded_trajectory(cfg, start[row], rollout[row], int(chunk["lengths"][row]),
-                                             EVENT_NAMES[int(chunk["events"][row])])
+                                             EVENT_NAMES[int(chunk["events"][row])],
+                                             obstacle_polygons(crowd.state, row))
         if progress is not None:
             progress(n)
     metrics = episode_metrics(
@@ -128,9 +129,19 @@ def evaluate(
     return metrics, trajectory
 
 
-def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str) -> Trajectory:
+def obstacle_polygons(state, row: int) -> tuple | None:
+    """The obstacle polygons of episode ``row`` of a :class:`~crowdrl.sim.state.CrowdState` as
+    ``[n_i, 2]`` arrays (valid vertices only), or ``None`` without obstacles."""
+    if state is None or not state.has_obstacles:
+        return None
+    obs, mask = state.obstacles[row].double().cpu(), state.obstacle_mask[row].cpu()
+    return tuple(obs[p, mask[p]].numpy() for p in range(obs.shape[0]) if int(mask[p].sum()) >= 2)
+
+
+def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str,
+                        obstacles: tuple | None = None) -> Trajectory:
     """The :class:`Trajectory` of one env row: its reset observation and its first ``length`` steps
-    (the humans present in it)."""
+    (the humans present in it), with the episode's ``obstacles`` polygons if any."""
     def series(key: str) -> Tensor:
         first = start.get(key).unsqueeze(0)
         return torch.cat((first, steps.get(("next", key))[:length]), 0).double().cpu()
@@ -150,4 +161,5 @@ def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, lengt
         time_step=cfg.time_step,
         outcome=outcome,
         robot_headings=robot[:, 8].numpy(),
+        obstacles=obstacles,
     )

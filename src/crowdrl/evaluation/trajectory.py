@@ -48,6 +48,8 @@ class Trajectory:
     time_step: float
     outcome: str = ""
     robot_headings: np.ndarray | None = None  # [T+1], radians
+    # static obstacles: polygons [n_i, 2] (n_i = 2: a wall segment; 3+: a counter-clockwise solid), or None
+    obstacles: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: object) -> None:
@@ -93,6 +95,18 @@ class Trajectory:
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name}: contains non-finite values")
 
+        obstacles = self.obstacles
+        if obstacles is not None:
+            polys = []
+            for i, poly in enumerate(obstacles):
+                poly = _as_float_array(f"obstacles[{i}]", poly)
+                if poly.ndim != 2 or poly.shape[-1] != 2 or poly.shape[0] < 2:
+                    raise ValueError(f"obstacles[{i}]: expected shape [n >= 2, 2], got {poly.shape}")
+                if not np.all(np.isfinite(poly)):
+                    raise ValueError(f"obstacles[{i}]: contains non-finite values")
+                polys.append(poly)
+            obstacles = tuple(polys)
+
         if not isinstance(self.outcome, str):
             raise ValueError(f"outcome: expected a str, got {type(self.outcome).__name__}")
 
@@ -104,6 +118,7 @@ class Trajectory:
         put("human_radius", _positive_scalar("human_radius", self.human_radius))
         put("time_step", _positive_scalar("time_step", self.time_step))
         put("robot_headings", headings)
+        put("obstacles", obstacles)
 
     @property
     def num_steps(self) -> int:

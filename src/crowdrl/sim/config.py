@@ -7,7 +7,12 @@ from dataclasses import dataclass
 
 from crowdrl.sim.kinematics import KINEMATICS
 
-SCENARIOS = ("circle", "square")
+SCENARIOS = ("circle", "square", "corridor", "doorway", "room")
+OPEN_SCENARIOS = ("circle", "square")  # no obstacles: the paper's scenarios
+OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdrl.sim.scenarios)
+# CrowdConfig's obstacle geometry keys (the Hydra env group's keys of the same names)
+OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
+                 "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst")
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
@@ -47,6 +52,18 @@ class CrowdConfig:
     # Collision check over the step with the humans' velocities of this step ("new", the motion
     # that happens) or, as upstream CrowdNav did, those from the start of the step ("start").
     collision_velocity: str = "new"
+    # Static obstacles (scenarios corridor, doorway, room; docs in crowdrl.sim.scenarios). The robot
+    # still goes from (0, -circle_radius) to (0, circle_radius).
+    corridor_width: float = 4.0  # corridor: the distance between its two walls (x = -w/2 and +w/2)
+    corridor_length: float = 10.0  # corridor: the walls' length, centred on the origin along y
+    doorway_gap: float = 2.0  # doorway: the gap's width, centred on x = 0 in the wall y = 0
+    doorway_width: float = 10.0  # doorway: the wall's full length along x (gap included)
+    room_pillars: int = 4  # room: convex pillars (rectangles at random positions and angles)
+    room_pillar_min: float = 0.5  # room: a pillar's side lengths, each uniform in [min, max]
+    room_pillar_max: float = 1.5
+    # ORCA time horizon of the humans towards obstacles (RVO2's timeHorizonObst): CrowdNav's ORCA
+    # policy and RVO2's examples use 5 s, as for other agents.
+    orca_time_horizon_obst: float = 5.0
     # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
     # clipped to robot_v_pref; the ORCA robot baseline acts this way).
     robot_kinematics: str = "unicycle"
@@ -75,6 +92,7 @@ class CrowdConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        self._check_obstacle_keys()
         if self.time_limit < self.time_step:
             raise ValueError(f"time_limit ({self.time_limit}) must be >= time_step ({self.time_step})")
         if self.discomfort_dist < 0:
@@ -83,6 +101,52 @@ class CrowdConfig:
             raise ValueError("orca_neighbor_dist and orca_max_neighbors must be >= 0")
         if self.goal_steps_before_new_goal < 1:
             raise ValueError(f"goal_steps_before_new_goal must be >= 1, got {self.goal_steps_before_new_goal}")
+
+    def _check_obstacle_keys(self) -> None:
+        """The obstacle geometry's keys: finite, positive, and roomy enough for the agents (checked
+        whatever the scenario, so that a bad value is named even before it is used)."""
+        for name in ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillar_min",
+                     "room_pillar_max", "orca_time_horizon_obst"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if isinstance(self.room_pillars, bool) or int(self.room_pillars) != self.room_pillars or self.room_pillars < 0:
+            raise ValueError(f"room_pillars must be an integer >= 0, got {self.room_pillars!r}")
+        if self.room_pillar_min > self.room_pillar_max:
+            raise ValueError(f"room_pillar_min ({self.room_pillar_min}) must be <= room_pillar_max "
+                             f"({self.room_pillar_max})")
+        if self.scenario not in OBSTACLE_SCENARIOS:
+            return
+        need = 2 * (max(self.human_radius, self.robot_radius) + self.obstacle_clearance_margin)
+        if self.scenario == "corridor":
+            if self.corridor_width <= need:
+                raise ValueError(f"corridor_width ({self.corridor_width}) must exceed {need:g} m (an agent's "
+                                 "diameter plus its obstacle clearance on both sides)")
+            if self.corridor_length < 2 * self.circle_radius:
+                raise ValueError(f"corridor_length ({self.corridor_length}) must be >= 2 * circle_radius "
+                                 f"({2 * self.circle_radius:g}): the robot starts and ends inside the corridor")
+        if self.scenario == "doorway":
+            if self.doorway_gap <= need:
+                raise ValueError(f"doorway_gap ({self.doorway_gap}) must exceed {need:g} m (an agent's diameter "
+                                 "plus its obstacle clearance on both sides)")
+            if self.doorway_width <= self.doorway_gap:
+                raise ValueError(f"doorway_width ({self.doorway_width}) must exceed doorway_gap ({self.doorway_gap})")
+
+    @property
+    def obstacles_shape(self) -> tuple[int, int]:
+        """``(P, V)``: the polygons and vertices per polygon of every episode's obstacles (``(0, 2)``
+        for the open scenarios: no obstacles)."""
+        if self.scenario in ("corridor", "doorway"):
+            return 2, 2  # two wall segments
+        if self.scenario == "room":
+            return self.room_pillars, 4
+        return 0, 2
+
+    @property
+    def obstacle_clearance_margin(self) -> float:
+        """Margin beyond an agent's radius that spawns, goals and the humans' straight paths keep from
+        obstacles (the discomfort distance, 0.2 m)."""
+        return self.discomfort_dist
 
     @property
     def variable_crowd(self) -> bool:

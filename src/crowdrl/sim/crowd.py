@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.obstacles import ObstacleEdges, path_obstacle_distance
 from crowdrl.sim.orca import orca_solve, require_finite
 from crowdrl.sim.scenarios import new_human_goals
 from crowdrl.sim.state import CrowdState
@@ -34,6 +35,8 @@ class StepResult(NamedTuple):
     min_separation: Tensor  # closest robot-human surface distance during the step
     discomfort_count: Tensor  # int64: humans closer than discomfort_dist during the step
     human_lp_infeasible: Tensor  # [B, N] bool: a human's ORCA program fell back to 3-D
+    # bool: the robot touched an obstacle during the step (a collision; None: no obstacles)
+    obstacle_collision: Tensor | None = None
 
 
 def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
@@ -43,9 +46,43 @@ def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
     return torch.where(dist > 1, to_goal / dist.clamp_min(1e-12), to_goal)
 
 
-def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:
+def doorway_waypoints(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tensor:
+    """``doorway``: where a human heads for, ``[..., 2]``: its goal once on the goal's side of the wall,
+    before that the point of the gap (``y = 0``, ``|x| <= doorway_gap / 2 - human_radius - margin``)
+    nearest to where its straight line to the goal crosses the wall's line. A pure function of the
+    position and goal (no state): on a straight line through the gap it is a point of that line, so
+    the human walks straight as without it; a human pushed off its line walks back into the gap
+    instead of pressing against the wall (ORCA avoids obstacles but does not plan around them)."""
+    py, gy = position[..., 1], goal[..., 1]
+    crossing = py * gy < 0
+    t = py / torch.where(crossing, py - gy, torch.ones_like(py))
+    x = position[..., 0] + t * (goal[..., 0] - position[..., 0])
+    inner = cfg.doorway_gap / 2 - cfg.human_radius - cfg.obstacle_clearance_margin
+    waypoint = torch.stack((x.clamp(-inner, inner), torch.zeros_like(x)), -1)
+    return torch.where(crossing.unsqueeze(-1), waypoint, goal)
+
+
+def human_preferred_velocities(cfg: CrowdConfig, state: CrowdState) -> Tensor:
+    """The humans' preferred velocities: :func:`human_preferred_velocity` towards the goal; in
+    ``doorway`` the same speed, towards :func:`doorway_waypoints` (the gap) while the wall is between
+    a human and its goal."""
+    pref = human_preferred_velocity(state.human_position, state.human_goal)
+    if cfg.scenario != "doorway":
+        return pref
+    to = doorway_waypoints(cfg, state.human_position, state.human_goal) - state.human_position
+    dist = torch.linalg.vector_norm(to, dim=-1, keepdim=True)
+    speed = torch.linalg.vector_norm(pref, dim=-1, keepdim=True)
+    return torch.where(dist > 1e-6, to / dist.clamp_min(1e-12) * speed, pref)
+
+
+def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdges | None = None
+                     ) -> tuple[Tensor, Tensor]:
     """ORCA velocities of the humans among themselves (the robot is invisible to them); absent
-    humans (``state.human_mask``) are nobody's neighbours and keep their velocity."""
+    humans (``state.human_mask``) are nobody's neighbours and keep their velocity.
+
+    With obstacles in the state (``state.obstacles``, ``P > 0``) the humans' ORCA sees them too,
+    with ``cfg.orca_time_horizon_obst``; ``obstacle_edges`` are their processed edges if already at
+    hand (:func:`crowdrl.sim.obstacles.process_obstacles`), else the polygons are processed here."""
     if cfg.orca_backend == "compiled":
         from crowdrl.sim.fast import compiled_orca_solve as solve
     else:
@@ -57,7 +94,7 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tenso
     sol = solve(
         state.human_position,
         state.human_velocity,
-        human_preferred_velocity(state.human_position, state.human_goal),
+        human_preferred_velocities(cfg, state),
         radius,
         torch.full_like(radius, cfg.human_v_pref),
         time_step=cfg.time_step,
@@ -65,8 +102,19 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tenso
         max_neighbors=cfg.orca_max_neighbors,
         time_horizon=cfg.orca_time_horizon,
         mask=mask,
+        **_orca_obstacles(cfg, state, obstacle_edges),
     )
     return sol.velocities, sol.lp_infeasible
+
+
+def _orca_obstacles(cfg: CrowdConfig, state: CrowdState, edges: ObstacleEdges | None) -> dict:
+    """The obstacle arguments of the ORCA solver: none for open scenarios (bit-identical to before)."""
+    if not state.has_obstacles:
+        return {}
+    if edges is not None:
+        return {"obstacles": edges, "time_horizon_obst": cfg.orca_time_horizon_obst}
+    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask,
+            "time_horizon_obst": cfg.orca_time_horizon_obst}
 
 
 def closest_surface_distance(rel_position: Tensor, rel_velocity: Tensor, dt: float, radii: float) -> Tensor:
@@ -87,20 +135,34 @@ class StepReward(NamedTuple):
     """How one step of the robot is judged, per episode ``[...]``."""
 
     reward: Tensor
-    collided: Tensor  # bool: the robot touched a present human during the step
+    collided: Tensor  # bool: the robot touched a present human (or an obstacle) during the step
     reached: Tensor  # bool: the robot ends the step within its radius of the goal
     min_separation: Tensor  # closest robot-human surface distance during the step (inf: no human present)
     discomfort_count: Tensor  # int64: present humans closer than discomfort_dist during the step
+    obstacle_collision: Tensor | None = None  # bool: the robot touched an obstacle (None: none given)
+
+
+def obstacle_hit(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor, obstacles: Tensor,
+                 obstacle_mask: Tensor) -> Tensor:
+    """Continuous collision of the robot with obstacle edges over a step, ``[B]`` bool: the disc of
+    ``cfg.robot_radius`` swept along ``p -> p + v * dt`` touches an edge (strictly closer than the
+    radius, as with humans), so a fast robot cannot tunnel through a wall between two positions."""
+    p0 = robot_position.unsqueeze(1)
+    p1 = p0 + robot_velocity.unsqueeze(1) * cfg.time_step
+    return path_obstacle_distance(p0, p1, obstacles, obstacle_mask).squeeze(1) < cfg.robot_radius
 
 
 def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor, robot_goal: Tensor,
-                human_position: Tensor, human_velocity: Tensor, human_mask: Tensor | None = None) -> StepReward:
+                human_position: Tensor, human_velocity: Tensor, human_mask: Tensor | None = None,
+                obstacles: Tensor | None = None, obstacle_mask: Tensor | None = None) -> StepReward:
     """The reward, collision and goal of a step (``docs/mdp.md``, "Reward"): the one definition
     that :func:`step` and any look-ahead (e.g. a planner's predicted crowd) use.
 
     Positions are at the start of the step; velocities hold over it (``dt = cfg.time_step``).
     Shapes: robot ``[..., 2]``, humans ``[..., N, 2]``, ``human_mask [..., N]`` bool (``True`` =
     present; absent humans neither collide, nor cause discomfort, nor enter the reward).
+    ``obstacles [B, P, V, 2]`` with ``obstacle_mask [B, P, V]`` (robot ``[B, 2]``): touching an
+    obstacle edge during the step (:func:`obstacle_hit`) is a collision, with the same penalty.
     """
     dt = cfg.time_step
     rel_p = human_position - robot_position.unsqueeze(-2)
@@ -110,6 +172,10 @@ def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor
         surface = surface.masked_fill(~human_mask, float("inf"))
     min_sep = surface.amin(-1) if surface.shape[-1] else surface.new_full(surface.shape[:-1], float("inf"))
     collided = min_sep < 0
+    wall = None
+    if obstacles is not None and obstacles.shape[1] > 0:
+        wall = obstacle_hit(cfg, robot_position, robot_velocity, obstacles, obstacle_mask)
+        collided = collided | wall
     discomfort = (surface < cfg.discomfort_dist).sum(-1)
     robot_next = robot_position + robot_velocity * dt
     dist_before = torch.linalg.vector_norm(robot_position - robot_goal, dim=-1)
@@ -119,17 +185,22 @@ def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor
     reward = cfg.progress_factor * (dist_before - dist_after)
     reward = reward + torch.clamp(surface - cfg.discomfort_dist, max=0.0).sum(-1)
     reward = reward + torch.where(collided, cfg.collision_penalty, torch.where(reached, cfg.goal_reward, 0.0))
-    return StepReward(reward, collided, reached, min_sep, discomfort)
+    return StepReward(reward, collided, reached, min_sep, discomfort, wall)
 
 
-def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_heading: Tensor | None = None
-         ) -> tuple[CrowdState, StepResult]:
+def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_heading: Tensor | None = None,
+         obstacle_edges: ObstacleEdges | None = None) -> tuple[CrowdState, StepResult]:
     """Advance every episode by one time step.
 
     Args:
         robot_velocity: ``[B, 2]`` the robot's velocity during this step (world frame).
         robot_heading: ``[B]`` the robot's heading after the step; defaults to the velocity's
             direction (unchanged when the robot stops).
+        obstacle_edges: the processed edges of ``state.obstacles`` if at hand (the humans' ORCA
+            processes the polygons on every step otherwise); ignored without obstacles.
+
+    With obstacles in the state the humans' ORCA sees them and the robot collides with them
+    (:func:`obstacle_hit`: the episode ends as a collision, with the collision penalty).
 
     Raises ``ValueError`` naming the argument for NaN or infinite ``robot_velocity`` or
     ``robot_heading`` (and, from the ORCA solver, for a non-finite humans' state).
@@ -143,6 +214,9 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     given = {"robot_velocity": robot_velocity} if robot_heading is None else {"robot_velocity": robot_velocity,
                                                                              "robot_heading": robot_heading}
     require_finite(**given, **{"state.robot_position": state.robot_position, "state.robot_goal": state.robot_goal})
+    if state.has_obstacles and (state.obstacles.device != state.device or state.obstacle_mask.device != state.device):
+        raise ValueError(f"state.obstacles is on {state.obstacles.device} (mask on {state.obstacle_mask.device}) "
+                         f"but the agents are on {state.device}")
     if robot_heading is None:
         speed = torch.linalg.vector_norm(robot_velocity, dim=-1)
         robot_heading = torch.where(
@@ -155,12 +229,12 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     human_mask = state.human_mask if cfg.variable_crowd else None
 
     # 1. humans: ORCA from the state at the start of the step
-    human_vel, lp_infeasible = human_velocities(cfg, state)
+    human_vel, lp_infeasible = human_velocities(cfg, state, obstacle_edges)
 
     # 2-4. move, and judge the step: collision over the relative motion, goal, reward
     check_vel = human_vel if cfg.collision_velocity == "new" else state.human_velocity
     judged = step_reward(cfg, state.robot_position, robot_velocity, state.robot_goal, state.human_position,
-                         check_vel, human_mask)
+                         check_vel, human_mask, state.obstacles, state.obstacle_mask)
     collided, reached, reward = judged.collided, judged.reached, judged.reward
     min_sep, discomfort = judged.min_separation, judged.discomfort_count
     robot_pos = state.robot_position + robot_velocity * dt
@@ -194,7 +268,8 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
             human_velocity=torch.where(needs_goal.unsqueeze(-1), 0.0, human_vel),
             human_goal_steps=torch.where(needs_goal, 0, goal_steps),
         )
-    result = StepResult(reward, terminated, truncated, event, min_sep, discomfort, lp_infeasible)
+    result = StepResult(reward, terminated, truncated, event, min_sep, discomfort, lp_infeasible,
+                        judged.obstacle_collision)
     return moved, result
 
 

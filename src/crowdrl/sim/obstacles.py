@@ -25,7 +25,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["ObstacleEdges", "process_obstacles", "MAX_TREE_DEPTH"]
+__all__ = ["ObstacleEdges", "process_obstacles", "MAX_TREE_DEPTH", "check_obstacles", "obstacle_segments",
+           "segment_distance", "point_obstacle_distance", "path_obstacle_distance", "select_edges", "pad_edges",
+           "put_edges", "Segments", "segments_of"]
 
 _EPSILON = 1e-5  # RVO2's RVO_EPSILON, as in crowdrl.sim.orca
 MAX_TREE_DEPTH = 39  # obstacle kd-tree levels supported (the traversal key is a base-3 int64)
@@ -285,3 +287,161 @@ def process_obstacles(obstacles: Tensor, obstacle_mask: Tensor | None = None) ->
     anc = inverse.gather(1, g(anc).reshape(B, -1)).view(B, E, anc.shape[-1]) if anc.shape[-1] else g(anc)
     return ObstacleEdges(g(start), g(end), g(direction), g(prev_dir), g(next_dir), g(start_convex), g(end_convex),
                          g(valid), anc, g(side), g(depth))
+
+
+def select_edges(edges: ObstacleEdges, idx) -> ObstacleEdges:
+    """The scenes ``idx`` (an index or slice of the batch dimension) of ``edges``."""
+    return ObstacleEdges(*(t[idx] for t in edges))
+
+
+def pad_edges(edges: ObstacleEdges, num_edges: int, depth: int) -> ObstacleEdges:
+    """``edges`` padded with invalid edges to ``num_edges`` and with unused kd-tree levels to ``depth``
+    (padding is ignored by the solver: the same velocities, bit for bit)."""
+    B, E = edges.valid.shape
+    D = edges.ancestors.shape[-1]
+    if num_edges < E or depth < D:
+        raise ValueError(f"cannot pad {E} edges of depth {D} to {num_edges} edges of depth {depth}")
+
+    def pad(t: Tensor) -> Tensor:
+        if t is edges.ancestors or t is edges.in_left:
+            out = t.new_zeros(B, num_edges, depth)
+            out[:, :E, :D] = t
+            return out
+        out = t.new_zeros((B, num_edges) + t.shape[2:])
+        out[:, :E] = t
+        return out
+    return ObstacleEdges(*(pad(t) for t in edges))
+
+
+def put_edges(edges: ObstacleEdges, idx: Tensor, new: ObstacleEdges) -> ObstacleEdges:
+    """``edges`` with the scenes ``idx [K]`` replaced by ``new`` (``K`` scenes), both padded to the
+    larger edge count and tree depth."""
+    E = max(edges.num_edges, new.num_edges)
+    D = max(edges.ancestors.shape[-1], new.ancestors.shape[-1])
+    edges, new = pad_edges(edges, E, D), pad_edges(new, E, D)
+    out = []
+    for t, n in zip(edges, new):
+        t = t.clone()
+        t[idx] = n
+        out.append(t)
+    return ObstacleEdges(*out)
+
+
+# --- plain geometry of the polygons (collision checks and spawn clearance; not ORCA) -------------
+
+def check_obstacles(obstacles: Tensor, obstacle_mask: Tensor | None = None) -> Tensor:
+    """Validate polygons as :func:`process_obstacles` does (fewer than 2 vertices, a clockwise or
+    zero-area solid polygon, NaN or infinite vertices, zero-length edges, a malformed mask: a
+    ``ValueError`` naming the polygon); returns the vertex mask."""
+    return _check_polygons(obstacles, obstacle_mask)
+
+
+def obstacle_segments(obstacles: Tensor, obstacle_mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The edges of the polygons as segments ``a -> b``: ``[B, P*V, 2]`` each and ``valid [B, P*V]``.
+
+    A wall (2 vertices) is one segment; a solid polygon of ``n`` vertices has ``n`` (the last
+    closing it). Masked vertices give invalid segments (zeros)."""
+    B, P, V, _ = obstacles.shape
+    m = obstacle_mask
+    n = m.sum(-1, keepdim=True)
+    k = torch.arange(V, device=obstacles.device)
+    nxt = torch.where(k + 1 < n, k + 1, 0)
+    a = torch.where(m.unsqueeze(-1), obstacles, torch.zeros((), dtype=obstacles.dtype, device=obstacles.device))
+    b = a.gather(2, nxt.unsqueeze(-1).expand(B, P, V, 2))
+    valid = m & ((n >= 3) | ((n == 2) & (k == 0)))
+    return a.reshape(B, P * V, 2), b.reshape(B, P * V, 2), valid.reshape(B, P * V)
+
+
+def _point_segment_sq(px: Tensor, py: Tensor, ax: Tensor, ay: Tensor, bx: Tensor, by: Tensor) -> Tensor:
+    """Squared distance of points to segments, on separate x/y components (broadcast; faster than ``[..., 2]``)."""
+    ux, uy = bx - ax, by - ay
+    wx, wy = px - ax, py - ay
+    sq = ux * ux + uy * uy
+    t = ((wx * ux + wy * uy) / torch.where(sq > 0, sq, torch.ones_like(sq))).clamp_(0.0, 1.0)
+    dx, dy = wx - t * ux, wy - t * uy
+    return dx * dx + dy * dy
+
+
+def _segment_distance_xy(p0x, p0y, p1x, p1y, ax, ay, bx, by) -> Tensor:
+    d = torch.minimum(torch.minimum(_point_segment_sq(p0x, p0y, ax, ay, bx, by),
+                                    _point_segment_sq(p1x, p1y, ax, ay, bx, by)),
+                      torch.minimum(_point_segment_sq(ax, ay, p0x, p0y, p1x, p1y),
+                                    _point_segment_sq(bx, by, p0x, p0y, p1x, p1y)))
+    ux, uy, qx, qy = bx - ax, by - ay, p1x - p0x, p1y - p0y
+    d1 = ux * (p0y - ay) - uy * (p0x - ax)
+    d2 = ux * (p1y - ay) - uy * (p1x - ax)
+    d3 = qx * (ay - p0y) - qy * (ax - p0x)
+    d4 = qx * (by - p0y) - qy * (bx - p0x)
+    crossing = (d1 * d2 < 0) & (d3 * d4 < 0)
+    return d.masked_fill_(crossing, 0.0).sqrt_()
+
+
+def segment_distance(p0: Tensor, p1: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """Distance between the segments ``p0 -> p1`` and ``a -> b`` (``[..., 2]``, broadcast): 0 when
+    they cross, else the smallest endpoint-to-segment distance. A zero-length ``p0 -> p1`` is a point."""
+    p0, p1, a, b = torch.broadcast_tensors(p0, p1, a, b)
+    return _segment_distance_xy(*p0.unbind(-1), *p1.unbind(-1), *a.unbind(-1), *b.unbind(-1))
+
+
+class Segments(NamedTuple):
+    """The obstacles' edges (:func:`obstacle_segments`) as components ``[B, 1, S]``, with each polygon's
+    solidity ``[B, P]`` and ``V``: computed once, reused by the distance functions (``segments=``)."""
+
+    ax: Tensor
+    ay: Tensor
+    bx: Tensor
+    by: Tensor
+    valid: Tensor
+    solid: Tensor
+    V: int
+
+    def select(self, idx) -> "Segments":
+        return Segments(*(t[idx] for t in self[:6]), self.V)
+
+
+def segments_of(obstacles: Tensor, obstacle_mask: Tensor) -> Segments:
+    a, b, valid = obstacle_segments(obstacles, obstacle_mask)
+    ax, ay = a.unsqueeze(1).unbind(-1)
+    bx, by = b.unsqueeze(1).unbind(-1)
+    return Segments(ax, ay, bx, by, valid.unsqueeze(1), obstacle_mask.sum(-1) >= 3, obstacles.shape[2])
+
+
+def _inside_convex(points: Tensor, seg: Segments) -> Tensor:
+    """``points [B, M, 2]`` inside (or on) a convex solid polygon (3+ counter-clockwise vertices): ``[B, M]``."""
+    B, P = seg.solid.shape
+    if not bool(seg.solid.any()):
+        return torch.zeros(points.shape[:2], dtype=torch.bool, device=points.device)
+    px, py = points.unsqueeze(-1).unbind(-2)  # [B, M, 1]
+    left = ((seg.bx - seg.ax) * (py - seg.ay) - (seg.by - seg.ay) * (px - seg.ax) >= 0) | ~seg.valid  # [B, M, S]
+    inside = left.view(B, -1, P, seg.V).all(-1) & seg.solid.unsqueeze(1)
+    return inside.any(-1)
+
+
+def point_obstacle_distance(points: Tensor, obstacles: Tensor | None, obstacle_mask: Tensor | None,
+                            segments: Segments | None = None) -> Tensor:
+    """Distance ``[B, M]`` of ``points [B, M, 2]`` to the obstacles ``[B, P, V, 2]`` (or their
+    precomputed ``segments``): to the nearest edge, 0 inside a solid polygon (taken as convex),
+    ``inf`` without obstacles."""
+    B, M, _ = points.shape
+    seg = segments_of(obstacles, obstacle_mask) if segments is None else segments
+    if seg.solid.shape[1] == 0:
+        return points.new_full((B, M), float("inf"))
+    px, py = points.unsqueeze(-1).unbind(-2)
+    d = _point_segment_sq(px, py, seg.ax, seg.ay, seg.bx, seg.by).masked_fill_(~seg.valid, float("inf"))
+    d = d.amin(-1).sqrt_()
+    return d.masked_fill_(_inside_convex(points, seg), 0.0)
+
+
+def path_obstacle_distance(start: Tensor, end: Tensor, obstacles: Tensor | None, obstacle_mask: Tensor | None,
+                           segments: Segments | None = None) -> Tensor:
+    """Distance ``[B, M]`` of the straight paths ``start -> end`` (``[B, M, 2]``) to the obstacle
+    edges (or their precomputed ``segments``; ``inf`` without obstacles); a path that starts outside
+    a polygon and enters it crosses an edge (0)."""
+    B, M, _ = start.shape
+    seg = segments_of(obstacles, obstacle_mask) if segments is None else segments
+    if seg.solid.shape[1] == 0:
+        return start.new_full((B, M), float("inf"))
+    p0x, p0y = start.unsqueeze(-1).unbind(-2)
+    p1x, p1y = end.unsqueeze(-1).unbind(-2)
+    d = _segment_distance_xy(p0x, p0y, p1x, p1y, seg.ax, seg.ay, seg.bx, seg.by)
+    return d.masked_fill_(~seg.valid, float("inf")).amin(-1)

@@ -1,10 +1,40 @@
-"""Episode initial states: circle- and square-crossing humans with spawn clearance.
+"""Episode initial states: circle- and square-crossing humans with spawn clearance, and the
+scenarios with static obstacles (corridor, doorway, room).
 
 Every random number comes from :mod:`crowdrl.sim.rng`, keyed by the episode, so an episode is
 a pure function of (stream, seed, episode id), whatever the batch it is generated in.
 Rejection sampling is vectorised: each human tries up to ``SPAWN_ROUNDS`` candidates and takes
 the first valid one, in the order the reference simulator would have tried them; the rounds
 are evaluated in chunks sized to the observed acceptance rate, for the episodes still searching.
+
+Obstacle scenarios (the robot still goes from ``(0, -circle_radius)`` to ``(0, circle_radius)``,
+``(0, -4)`` to ``(0, 4)`` by default; the keys are :class:`~crowdrl.sim.config.CrowdConfig`'s):
+
+* ``corridor``: two parallel walls (2-vertex segments) at ``x = -/+ corridor_width / 2`` (4 m apart),
+  ``corridor_length`` long (10 m) centred on the origin. Each human walks one way (up or down, a
+  fair draw): it starts inside the corridor in the half behind it and heads for the last quarter
+  of the corridor ahead.
+* ``doorway``: a wall across the path at ``y = 0``, ``doorway_width`` long (10 m), with a gap of
+  ``doorway_gap`` (2 m) centred on ``x = 0``. Each human starts on one side (within the
+  ``square_width`` square, clear of the wall) and heads for the other side; the sides alternate as
+  in ``corridor``.
+* ``room``: ``room_pillars`` (4) rectangular pillars, sides uniform in ``[room_pillar_min,
+  room_pillar_max]`` (0.5..1.5 m), rotated uniformly, counter-clockwise, centred in the square of
+  ``square_width - 2`` m; each clear of the robot's start and goal and of the others (centres apart
+  by their circumradii plus a passage of ``2 * (human_radius + margin)``). Humans cross the square
+  as in ``square``.
+
+Reachability: the humans' ORCA avoids obstacles but does not plan around them, so a human's start
+and goal (and every later goal of a non-stop human) are drawn such that the straight line between
+them keeps ``human_radius + margin`` from every obstacle edge (``margin`` =
+``CrowdConfig.obstacle_clearance_margin``, the discomfort distance): in ``doorway`` that line goes
+through the gap. In ``doorway`` a human pushed off that line (by the crowd at the door) would press
+against the wall, so until it has crossed the wall's line it heads for a waypoint in the gap
+(:func:`crowdrl.sim.crowd.doorway_waypoints`, a pure function of its position and goal; on the
+straight line it is a point of that line, so an unhindered human walks straight as before). Spawns
+and goals keep the same clearance from the obstacles (the robot's start and
+goal ``robot_radius + margin``). A draw failing after the bounded number of rounds raises
+:class:`SpawnError` naming the scenario and its keys.
 """
 
 from __future__ import annotations
@@ -16,7 +46,8 @@ import torch
 from torch import Tensor
 
 from crowdrl.sim import rng
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import OBSTACLE_SCENARIOS, CrowdConfig
+from crowdrl.sim.obstacles import Segments, path_obstacle_distance, point_obstacle_distance, segments_of
 from crowdrl.sim.state import CrowdState
 
 SPAWN_ROUNDS = 256  # candidates per human at spawn; exhausting them is an error
@@ -28,7 +59,10 @@ _FIRST_DRAWS = 1 << 18  # uniforms of up to 16 first rounds drawn for every huma
 _MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 
 # Index tags keeping the purposes of random draws apart.
-_TAG_SPAWN, _TAG_NEW_GOAL, _TAG_CROWD_SIZE = range(3)
+_TAG_SPAWN, _TAG_NEW_GOAL, _TAG_CROWD_SIZE, _TAG_OBSTACLES = range(4)
+PILLAR_ROUNDS = 64  # candidates per room pillar; exhausting them is an error
+OBSTACLE_GOAL_ROUNDS = 64  # candidates per new goal in the obstacle scenarios (a clear straight path is rarer)
+_OBSTACLE_CHUNK = 32  # spawn rounds evaluated at once in the obstacle scenarios (speed only)
 # Where absent humans (a crowd smaller than its maximum) stand: far from everything, still.
 _PARKED = 1.0e4
 # Components of a spawn round: 0-2 circle start (angle, x noise, y noise), 3-4 square start,
@@ -130,6 +164,8 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     episode's humans stand with a fixed crowd of that size. Absent humans are not placed: they
     stand still, far away, and ``human_mask`` marks them.
     """
+    if cfg.scenario in OBSTACLE_SCENARIOS:
+        return _obstacle_initial_states(cfg, episode_key, dtype)
     B, N = episode_key.shape[0], cfg.num_humans
     device = episode_key.device
     clearance = cfg.spawn_clearance
@@ -236,6 +272,8 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
         step_count=torch.zeros(B, dtype=torch.int64, device=device),
         episode_key=episode_key.clone(),
         human_mask=human_mask,
+        obstacles=torch.zeros(B, 0, 2, 2, dtype=dtype, device=device),  # open: no obstacles
+        obstacle_mask=torch.zeros(B, 0, 2, dtype=torch.bool, device=device),
     )
 
 
@@ -247,6 +285,8 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     when one of ``GOAL_ROUNDS`` candidates allows it; otherwise the last candidate is used (the
     episode must go on). Only the humans that need a goal are computed.
     """
+    if cfg.scenario in OBSTACLE_SCENARIOS:
+        return _obstacle_new_goals(cfg, state, needs_goal)
     dtype, device = state.human_goal.dtype, state.device
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
@@ -271,4 +311,245 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     chosen = torch.gather(cand, 1, first.view(M, 1, 1).expand(M, 1, 2)).squeeze(1)
     goals = state.human_goal.clone()
     goals[env, human] = chosen
+    return goals
+
+
+# --- scenarios with static obstacles ---------------------------------------------------------------
+
+def _keys_of(cfg: CrowdConfig) -> str:
+    keys = {"corridor": ("corridor_width", "corridor_length"), "doorway": ("doorway_gap", "doorway_width"),
+            "room": ("room_pillars", "room_pillar_min", "room_pillar_max")}[cfg.scenario]
+    keys = keys + ("num_humans", "square_width") if cfg.scenario != "corridor" else keys + ("num_humans",)
+    return ", ".join(f"{k}={getattr(cfg, k)}" for k in keys)
+
+
+def _rectangles(center: Tensor, half: Tensor, angle: Tensor) -> Tensor:
+    """Counter-clockwise corners ``[..., 4, 2]`` of rectangles (``center``/``half`` ``[..., 2]``, ``angle [...]``)."""
+    signs = torch.tensor([[1.0, -1.0], [1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0]], dtype=center.dtype,
+                         device=center.device)
+    local = signs * half.unsqueeze(-2)  # [..., 4, 2]
+    c, s = torch.cos(angle).unsqueeze(-1), torch.sin(angle).unsqueeze(-1)
+    x, y = local[..., 0], local[..., 1]
+    return torch.stack((c * x - s * y, s * x + c * y), -1) + center.unsqueeze(-2)
+
+
+def _rectangle_distance(points: Tensor, center: Tensor, half: Tensor, angle: Tensor) -> Tensor:
+    """Distance of ``points [..., 2]`` to rectangles (broadcast), 0 inside."""
+    d = points - center
+    c, s = torch.cos(angle), torch.sin(angle)
+    q = torch.stack((c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]), -1).abs() - half
+    return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1)
+
+
+def scenario_obstacles(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = torch.float32
+                       ) -> tuple[Tensor, Tensor]:
+    """The obstacles of the episodes ``episode_key [B]``: ``[B, P, V, 2]`` polygons and their vertex
+    mask ``[B, P, V]`` (``P, V = cfg.obstacles_shape``), a pure function of each episode's key."""
+    B, device = episode_key.shape[0], episode_key.device
+    P, V = cfg.obstacles_shape
+    mask = torch.ones(B, P, V, dtype=torch.bool, device=device)
+    if cfg.scenario == "corridor":
+        x, y = cfg.corridor_width / 2, cfg.corridor_length / 2
+        walls = [[[-x, -y], [-x, y]], [[x, y], [x, -y]]]
+    elif cfg.scenario == "doorway":
+        x, g = cfg.doorway_width / 2, cfg.doorway_gap / 2
+        walls = [[[-x, 0.0], [-g, 0.0]], [[g, 0.0], [x, 0.0]]]
+    elif cfg.scenario == "room":
+        return _room_pillars(cfg, episode_key, dtype), mask
+    else:
+        return torch.zeros(B, 0, 2, 2, dtype=dtype, device=device), torch.zeros(B, 0, 2, dtype=torch.bool,
+                                                                                 device=device)
+    return torch.tensor(walls, dtype=dtype, device=device).expand(B, P, V, 2).clone(), mask
+
+
+def _room_pillars(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype) -> Tensor:
+    """``room``: ``cfg.room_pillars`` rectangles ``[B, K, 4, 2]``, each the first of its rounds clear of
+    the robot's start and goal and of the pillars placed before it (the first 8 rounds are tried for
+    every episode, all of them only where those fail: the same result, cheaper)."""
+    B, K, device = episode_key.shape[0], cfg.room_pillars, episode_key.device
+    key = rng.fold(episode_key, _TAG_OBSTACLES)
+    span = cfg.square_width / 2 - 1.0
+    lo, hi = cfg.room_pillar_min, cfg.room_pillar_max
+    robot = torch.tensor([[0.0, -cfg.circle_radius], [0.0, cfg.circle_radius]], dtype=dtype, device=device)
+    robot_clear = cfg.robot_radius + cfg.obstacle_clearance_margin
+    passage = 2 * (cfg.human_radius + cfg.obstacle_clearance_margin)
+    centers = torch.zeros(B, K, 2, dtype=dtype, device=device)
+    halves = torch.zeros(B, K, 2, dtype=dtype, device=device)
+    angles = torch.zeros(B, K, dtype=dtype, device=device)
+
+    def candidates(k: int, episodes: Tensor | slice, rounds: int):
+        r = torch.arange(rounds, device=device).view(1, rounds, 1)
+        c = torch.arange(5, device=device).view(1, 1, 5)
+        u = rng.uniform(key[episodes].view(-1, 1, 1), (k * PILLAR_ROUNDS + r) * 5 + c, dtype=dtype)  # [A, R, 5]
+        center = (u[..., 0:2] * 2 - 1) * span
+        half = 0.5 * (lo + (hi - lo) * u[..., 2:4])
+        angle = u[..., 4] * math.pi  # a rectangle is symmetric under a half turn
+        ok = (_rectangle_distance(robot.view(1, 1, 2, 2), center.unsqueeze(2), half.unsqueeze(2),
+                                  angle.unsqueeze(2)) >= robot_clear).all(-1)  # [A, R]
+        if k:
+            gap = torch.linalg.vector_norm(center.unsqueeze(2) - centers[episodes, None, :k], dim=-1)  # [A, R, k]
+            need = (torch.linalg.vector_norm(half, dim=-1).unsqueeze(2)
+                    + torch.linalg.vector_norm(halves[episodes, None, :k], dim=-1) + passage)
+            ok = ok & (gap >= need).all(-1)
+        first = ok.to(torch.int8).argmax(-1)
+        take = lambda t: t.gather(1, first.view(-1, 1, *([1] * (t.dim() - 2))).expand(-1, 1, *t.shape[2:])).squeeze(1)  # noqa: E731
+        return take(center), take(half), take(angle), ok.any(-1)
+
+    for k in range(K):
+        center, half, angle, hit = candidates(k, slice(None), min(8, PILLAR_ROUNDS))
+        centers[:, k], halves[:, k], angles[:, k] = center, half, angle
+        if not bool(hit.all()):
+            again = (~hit).nonzero().squeeze(-1)
+            center, half, angle, hit = candidates(k, again, PILLAR_ROUNDS)
+            if not bool(hit.all()):
+                raise SpawnError(
+                    f"scenario room ({_keys_of(cfg)}): could not place pillar {k} clear of the robot's start and "
+                    f"goal and of the other pillars in {int((~hit).sum())} episode(s) after {PILLAR_ROUNDS} draws; "
+                    "use fewer or smaller pillars (room_pillars, room_pillar_max) or a larger square_width")
+            centers[again, k], halves[again, k], angles[again, k] = center, half, angle
+    return _rectangles(centers, halves, angles)
+
+
+def _human_region(cfg: CrowdConfig, side: Tensor, ux: Tensor, uy: Tensor, goal: bool) -> Tensor:
+    """A start (``goal=False``) or goal point ``[..., 2]`` of a human walking towards ``side`` (+1: +y)."""
+    clear = cfg.human_radius + cfg.obstacle_clearance_margin
+    if cfg.scenario == "corridor":
+        half_w, half_l = cfg.corridor_width / 2 - clear, cfg.corridor_length / 2
+        x = (ux * 2 - 1) * half_w
+        y = side * half_l * (0.2 + 0.8 * uy) if goal else -side * half_l * uy  # the far 40 % / the half behind
+        return torch.stack((x, y), -1)
+    if cfg.scenario == "doorway":
+        half_w = min(cfg.doorway_width, cfg.square_width) / 2 - clear
+        half_h = cfg.square_width / 2
+        x = (ux * 2 - 1) * half_w
+        y = (clear + uy * (half_h - clear)) * (side if goal else -side)
+        return torch.stack((x, y), -1)
+    return _square_points(cfg, side if goal else -side, ux, uy)  # room: square crossing (side of x)
+
+
+def _clear_of_obstacles(cfg: CrowdConfig, start: Tensor, goal: Tensor, seg: Segments, episodes: Tensor,
+                        candidates: Tensor, clear: float) -> Tensor:
+    """``[A, R]``: the start and goal ``[A, R, 2]`` of the ``episodes [A]`` and the straight path between
+    them keep ``clear`` from the obstacles (``seg``: of all episodes), evaluated only where
+    ``candidates [A, R]`` (the others: False).
+
+    By construction a corridor's points lie ``clear`` inside its walls (a convex region: the path too),
+    and a doorway's ``clear`` off the wall's line within its length, so only the path is checked there."""
+    if cfg.scenario == "corridor":
+        return candidates
+    a, r = candidates.nonzero(as_tuple=True)
+    s, g = start[a, r].unsqueeze(1), goal[a, r].unsqueeze(1)  # [C, 1, 2]
+    seg = seg.select(episodes[a])
+    ok = path_obstacle_distance(s, g, None, None, seg) >= clear
+    if cfg.scenario != "doorway":
+        ok = ok & (point_obstacle_distance(s, None, None, seg) >= clear) & (
+            point_obstacle_distance(g, None, None, seg) >= clear)
+    out = torch.zeros_like(candidates)
+    out[a, r] = ok.squeeze(1)
+    return out
+
+
+def _obstacle_initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype) -> CrowdState:
+    """:func:`initial_states` of the obstacle scenarios (module docstring): each human's start and goal
+    are drawn together, the first of its rounds that keeps every clearance (agents, obstacles, and the
+    straight path from start to goal)."""
+    B, N = episode_key.shape[0], cfg.num_humans
+    device = episode_key.device
+    obstacles, obstacle_mask = scenario_obstacles(cfg, episode_key, dtype)
+    clearance, robot_clear = cfg.spawn_clearance, cfg.human_radius + cfg.robot_radius + cfg.discomfort_dist
+    obst_clear = cfg.human_radius + cfg.obstacle_clearance_margin
+    robot_pos = torch.tensor([0.0, -cfg.circle_radius], dtype=dtype, device=device).expand(B, 2).clone()
+    robot_goal = torch.tensor([0.0, cfg.circle_radius], dtype=dtype, device=device).expand(B, 2).clone()
+    positions = torch.full((B, N + 1, 2), _PARKED, dtype=dtype, device=device)
+    goals = torch.full((B, N + 1, 2), _PARKED, dtype=dtype, device=device)
+    positions[:, 0], goals[:, 0] = robot_pos, robot_goal
+    spawn_key = rng.fold(episode_key, _TAG_SPAWN)
+    seg = segments_of(obstacles, obstacle_mask)
+    human_mask = torch.arange(N, device=device) < crowd_sizes(cfg, episode_key).unsqueeze(-1)
+    humans = torch.arange(N, device=device)
+    # the direction of each human (room: of x, as in square; corridor and doorway: of y), drawn in round
+    # 0; in corridor and doorway humans alternate directions from human 0's draw
+    side_draw = _spawn_uniforms(spawn_key, humans, 0, 1, range(7, 8), dtype)[:, :, 0, 0]  # [B, N]
+    if cfg.scenario != "room":
+        side_draw = side_draw[:, :1].expand(B, N)
+    for h in range(N):
+        side_draw_h = side_draw[:, h]
+        episodes = human_mask[:, h].nonzero().squeeze(-1)
+        first = 0
+        rate = 0.25  # acceptance rate guessed for the first chunk, then the first chunk's
+        while episodes.numel():
+            if first >= SPAWN_ROUNDS:
+                raise SpawnError(
+                    f"scenario {cfg.scenario} ({_keys_of(cfg)}): could not place the start and goal of human {h} "
+                    f"in {episodes.numel()} episode(s) after {SPAWN_ROUNDS} rejection rounds, clear of the other "
+                    "agents and of the obstacles with a clear straight path; use fewer humans or roomier obstacles")
+            A = episodes.numel()
+            rounds = min(_OBSTACLE_CHUNK, _chunk_rounds(A, h + 1, rate, SPAWN_ROUNDS - first))
+            u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, range(_SPAWN_COMPONENTS), dtype)  # [A, R, 8]
+            side = torch.where(side_draw_h[episodes] > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [A, 1]
+            if cfg.scenario != "room":  # corridor, doorway: alternate, half the crowd each way
+                side = side * (1.0 - 2.0 * (h % 2))
+            start = _human_region(cfg, side, u[..., 3], u[..., 4], goal=False)
+            goal = _human_region(cfg, side, u[..., 5], u[..., 6], goal=True)
+            d_start = _distances(start, positions[episodes, : h + 1])
+            d_goal = _distances(goal, goals[episodes, : h + 1])
+            ok = (d_start[0] >= robot_clear) & (d_goal[0] >= robot_clear)
+            if h:
+                ok = ok & (d_start[1:].amin(0) >= clearance) & (d_goal[1:].amin(0) >= clearance)
+            ok = ok & _clear_of_obstacles(cfg, start, goal, seg, episodes, ok, obst_clear)
+            rate = max(float(ok.sum()) / max(A * rounds, 1), 1e-3) if first == 0 else rate
+            s_pick, hit = _first_valid(start, ok)
+            g_pick, _ = _first_valid(goal, ok)
+            done = episodes[hit]
+            positions[done, h + 1], goals[done, h + 1] = s_pick[hit], g_pick[hit]
+            episodes = episodes[~hit]
+            first += rounds
+    return CrowdState(
+        robot_position=robot_pos,
+        robot_velocity=torch.zeros(B, 2, dtype=dtype, device=device),
+        robot_heading=torch.full((B,), math.pi / 2, dtype=dtype, device=device),
+        robot_goal=robot_goal,
+        human_position=positions[:, 1:].clone(),
+        human_velocity=torch.zeros(B, N, 2, dtype=dtype, device=device),
+        human_goal=goals[:, 1:].clone(),
+        human_goal_steps=torch.zeros(B, N, dtype=torch.int64, device=device),
+        step_count=torch.zeros(B, dtype=torch.int64, device=device),
+        episode_key=episode_key.clone(),
+        human_mask=human_mask,
+        obstacles=obstacles,
+        obstacle_mask=obstacle_mask,
+    )
+
+
+def _obstacle_new_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> Tensor:
+    """:func:`new_human_goals` of the obstacle scenarios: a goal on the other side (corridor: the other
+    end; doorway: the other side of the wall; room: a random side, as in square) clear of the obstacles
+    with a clear straight path from where the human stands, preferably also clear of every agent; a
+    human none of whose ``OBSTACLE_GOAL_ROUNDS`` candidates has a clear path keeps its goal (it asks again on
+    the next step, with new draws)."""
+    dtype, device = state.human_goal.dtype, state.device
+    env, human = needs_goal.nonzero(as_tuple=True)  # [M]
+    M = env.shape[0]
+    rounds = torch.arange(OBSTACLE_GOAL_ROUNDS, device=device).view(1, OBSTACLE_GOAL_ROUNDS, 1)
+    comps = torch.arange(4, device=device).view(1, 1, 4)
+    index = (human.view(M, 1, 1) * OBSTACLE_GOAL_ROUNDS + rounds) * 4 + comps
+    u = rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
+                    index, dtype=dtype).unbind(-1)  # [M, R] each
+    here = state.human_position[env, human]  # [M, 2]
+    if cfg.scenario == "room":
+        side = torch.where(u[3] > 0.5, -1.0, 1.0).to(dtype)
+    else:  # towards the other end / the other side of the wall
+        side = torch.where(here[:, 1:2] > 0, -1.0, 1.0).to(dtype).expand(M, OBSTACLE_GOAL_ROUNDS)
+    cand = _human_region(cfg, side, u[0], u[1], goal=True)  # [M, R, 2]
+    obs, om = state.obstacles[env], state.obstacle_mask[env]
+    clear = cfg.human_radius + cfg.obstacle_clearance_margin
+    reachable = (point_obstacle_distance(cand, obs, om) >= clear) & (
+        path_obstacle_distance(here.unsqueeze(1).expand_as(cand), cand, obs, om) >= clear)
+    others = torch.cat((state.robot_position[env].unsqueeze(1), state.human_position[env],
+                        state.robot_goal[env].unsqueeze(1), state.human_goal[env]), 1)
+    ok = reachable & _clear_of(cand, others, cfg.spawn_clearance)
+    ok = torch.where(ok.any(-1, keepdim=True), ok, reachable)
+    chosen, found = _first_valid(cand, ok)
+    goals = state.human_goal.clone()
+    goals[env, human] = torch.where(found.unsqueeze(-1), chosen, state.human_goal[env, human])
     return goals

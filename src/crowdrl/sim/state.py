@@ -24,6 +24,11 @@ class CrowdState:
     step_count: Tensor  # [B] int64
     episode_key: Tensor  # [B] int64, key of the episode's counter-based random numbers
     human_mask: Tensor  # [B, N] bool, True where a human is present (a crowd of n < N: the first n)
+    # Static obstacles of each episode, RVO2 polygons padded to the config's P x V
+    # (:mod:`crowdrl.sim.obstacles`: 2 vertices a wall segment, 3+ a counter-clockwise solid polygon):
+    # [B, P, V, 2] and the vertex mask [B, P, V]. P = 0 (the open scenarios) or None: no obstacles.
+    obstacles: Tensor | None = None
+    obstacle_mask: Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -32,6 +37,11 @@ class CrowdState:
     @property
     def num_humans(self) -> int:
         return self.human_position.shape[1]
+
+    @property
+    def has_obstacles(self) -> bool:
+        """Whether the episodes have obstacle polygons (a tensor with ``P > 0``)."""
+        return self.obstacles is not None and self.obstacles.shape[1] > 0
 
     @property
     def device(self) -> torch.device:
@@ -45,17 +55,23 @@ class CrowdState:
         out = {}
         for f in dataclasses.fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            if mine is None or theirs is None:
+                if (mine is None) != (theirs is None):
+                    raise ValueError(f"where: {f.name} is None in one state only")
+                out[f.name] = None
+                continue
             m = mask.reshape(mask.shape + (1,) * (mine.dim() - 1))
             out[f.name] = torch.where(m, theirs, mine)
         return CrowdState(**out)
 
     def to(self, device: torch.device | str) -> "CrowdState":
-        return CrowdState(**{f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)})
+        return CrowdState(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device)
+                             for f in dataclasses.fields(self)})
 
     def index(self, idx: Tensor | slice | int) -> "CrowdState":
         """The episodes selected by ``idx`` along the batch dimension."""
         out = {}
         for f in dataclasses.fields(self):
-            t = getattr(self, f.name)[idx]
-            out[f.name] = t
+            t = getattr(self, f.name)
+            out[f.name] = None if t is None else t[idx]
         return CrowdState(**out)

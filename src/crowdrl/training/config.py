@@ -23,7 +23,7 @@ from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.sim.kinematics import NUM_ACTIONS
-from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
+from crowdrl.sim.config import MAX_HUMANS, OBSTACLE_KEYS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
@@ -48,6 +48,15 @@ class EnvConfig:
     min_humans: int | None = None
     max_humans: int | None = None
     orca_backend: str = "eager"  # "compiled": the torch.compile ORCA (same numbers; compiles once per shape)
+    # obstacle geometry of corridor / doorway / room (CrowdConfig's keys and defaults; conf/env/*.yaml)
+    corridor_width: float = CrowdConfig.corridor_width
+    corridor_length: float = CrowdConfig.corridor_length
+    doorway_gap: float = CrowdConfig.doorway_gap
+    doorway_width: float = CrowdConfig.doorway_width
+    room_pillars: int = CrowdConfig.room_pillars
+    room_pillar_min: float = CrowdConfig.room_pillar_min
+    room_pillar_max: float = CrowdConfig.room_pillar_max
+    orca_time_horizon_obst: float = CrowdConfig.orca_time_horizon_obst
 
 
 @dataclass
@@ -225,6 +234,10 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _check(low <= high, "env.min_humans/env.max_humans",
            f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
     _one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
+    try:  # the obstacle geometry: CrowdConfig's checks, whose messages start with the key
+        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in OBSTACLE_KEYS})
+    except ValueError as exc:
+        raise ConfigError(f"env.{exc}") from None
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
     _one_of(x.name, "exploration.name", EXPLORATIONS)
     _check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",

@@ -24,17 +24,22 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Circle
+from matplotlib.patches import Circle, Polygon
 
 from crowdrl.evaluation.trajectory import Trajectory
 
-__all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "TIME_STAMP_GID"]
+__all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "TIME_STAMP_GID",
+           "OBSTACLE_GID"]
 
 #: ``gid`` given to every time-stamp text artist in :func:`plot_trajectory` (lets callers
 #: and tests find them among the other texts).
 TIME_STAMP_GID = "time_stamp"
 
+#: ``gid`` of every obstacle artist (a wall's line, a solid polygon's patch).
+OBSTACLE_GID = "obstacle"
+
 ROBOT_COLOR = "black"
+OBSTACLE_COLOR = "dimgray"
 GOAL_COLOR = "gold"
 STAMP_PERIOD_S = 5.0  # seconds between the time-stamped circles of the static plot
 TRAIL_STEPS = 8  # length of the fading trails of the animation, in steps
@@ -74,7 +79,7 @@ def _new_figure(size: tuple[float, float]) -> Figure:
 
 def _set_limits(ax: Axes, traj: Trajectory, include_human_goals: bool = False) -> None:
     """Equal-aspect bounds around everything drawn, padded by the largest radius."""
-    pts = [traj.robot_positions, traj.robot_goal[None], traj.human_positions.reshape(-1, 2)]
+    pts = [traj.robot_positions, traj.robot_goal[None], traj.human_positions.reshape(-1, 2), *(traj.obstacles or ())]
     if include_human_goals:
         pts.append(traj.human_goals.reshape(-1, 2))
     allp = np.concatenate(pts, axis=0)
@@ -116,8 +121,20 @@ def _heading_segment(center: np.ndarray, heading: float, radius: float) -> np.nd
 # ----------------------------------------------------------------------------- static plot
 
 
+def _draw_obstacles(ax: Axes, traj: Trajectory) -> None:
+    """Walls as thick lines, solid polygons as filled patches (``gid == OBSTACLE_GID``)."""
+    for poly in traj.obstacles or ():
+        if len(poly) == 2:
+            ax.plot(poly[:, 0], poly[:, 1], color=OBSTACLE_COLOR, lw=4.0, solid_capstyle="butt", zorder=2,
+                    gid=OBSTACLE_GID)
+        else:
+            ax.add_patch(Polygon(poly, closed=True, facecolor=OBSTACLE_COLOR, edgecolor="black", lw=0.8,
+                                 alpha=0.8, zorder=2, gid=OBSTACLE_GID))
+
+
 def _draw_episode(ax: Axes, traj: Trajectory) -> None:
-    """Paths, time-stamped circles, headings and the goal of one episode on ``ax``."""
+    """Obstacles, paths, time-stamped circles, headings and the goal of one episode on ``ax``."""
+    _draw_obstacles(ax, traj)
     colors = _human_colors(traj.num_humans)
     stamps = _stamp_indices(traj)
 
@@ -278,6 +295,7 @@ def animate_trajectory(
     ax = fig.add_subplot()
     colors = _human_colors(traj.num_humans)
     _set_limits(ax, traj, include_human_goals=show_human_goals)
+    _draw_obstacles(ax, traj)  # static: part of the frozen background
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, lw=0.4, alpha=0.4)
