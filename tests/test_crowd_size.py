@@ -184,6 +184,22 @@ def test_older_run_configs_keep_their_fingerprint():
     assert config_fingerprint(ranged) != config_fingerprint(now)
 
 
+def test_obstacle_geometry_is_in_the_fingerprint_only_where_there_are_obstacles():
+    """Open-space runs recorded before the obstacle keys existed keep their fingerprint (their best.pt
+    still loads); in an obstacle scenario the geometry is part of the problem."""
+    from crowdrl.sim.config import OBSTACLE_KEYS
+    from crowdrl.training.checkpoint import config_fingerprint
+    from crowdrl.training.config import to_dict
+
+    now = to_dict(validate({}))
+    before = {**now, "env": {k: v for k, v in now["env"].items() if k not in OBSTACLE_KEYS}}
+    assert config_fingerprint(now) == config_fingerprint(before)
+    assert config_fingerprint(to_dict(validate({"env": {"corridor_width": 3.0}}))) == config_fingerprint(now)
+    room = to_dict(validate({"env": {"scenario": "room"}}))
+    wider = to_dict(validate({"env": {"scenario": "room", "room_pillars": 2}}))
+    assert config_fingerprint(room) != config_fingerprint(wider)
+
+
 def test_orca_ignores_absent_humans_wherever_they_stand():
     """Absent humans moved into the crowd (not parked): the present humans' ORCA velocities are
     those of the crowd without them."""

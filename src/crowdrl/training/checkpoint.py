@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from crowdrl.files import atomic_write_bytes
+from crowdrl.sim.config import OBSTACLE_KEYS, OPEN_SCENARIOS
 
 FORMAT_VERSION = 1
 
@@ -37,8 +38,9 @@ def config_fingerprint(config: dict) -> str:
     for group, neutral in _NEUTRAL.items():
         if group in keep:
             keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
-    if "env" in keep:  # the ORCA backend changes speed, not numbers
-        keep["env"] = {k: v for k, v in keep["env"].items() if k != "orca_backend"}
+    if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space
+        drop = {"orca_backend", *(OBSTACLE_KEYS if keep["env"].get("scenario") in OPEN_SCENARIOS else ())}
+        keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
               "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
