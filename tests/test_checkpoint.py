@@ -88,6 +88,9 @@ def test_a_file_of_another_format_gets_a_clear_error(tmp_path):
     torch.save({"net": {"w": torch.ones(1)}}, path)  # no format number
     with pytest.raises(CheckpointError, match=rf"old\.pt is not a crowdrl checkpoint of format {FORMAT_VERSION}"):
         load_checkpoint(path)
+    torch.save({"format": FORMAT_VERSION + 1, "net": {"w": torch.ones(1)}}, path)
+    with pytest.raises(CheckpointError, match=rf"old\.pt .*found format {FORMAT_VERSION + 1}, expected {FORMAT_VERSION}"):
+        load_checkpoint(path)
 
 
 def test_save_and_load_round_trip(tmp_path):

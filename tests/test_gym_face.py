@@ -144,12 +144,6 @@ def test_make_vec_unseeded_sub_envs_differ_and_seeded_repeat():
     np.testing.assert_array_equal(single.reset()[0]["humans"], seeded_a[1][1])
 
 
-def test_old_import_path_still_works():
-    from crowdrl.envs.gym_env import CrowdNavGymEnv as Old
-
-    assert Old is CrowdNavGymEnv
-
-
 def test_fresh_script_gym_make_leaves_torchrl_out_and_torchrl_gym_env_runs(tmp_path):
     # One fresh interpreter for both checks (each costs seconds of imports). As a user would
     # write it: torchrl's GymEnv(num_envs=...) runs an AsyncVectorEnv whose spawned workers

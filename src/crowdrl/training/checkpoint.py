@@ -108,7 +108,11 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
     except Exception as exc:
         raise CheckpointError(f"{path} is not a readable checkpoint (truncated or corrupt?): {_first_line(exc)}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT_VERSION:
-        raise CheckpointError(f"{path} is not a crowdrl checkpoint of format {FORMAT_VERSION}")
+        found = data.get("format") if isinstance(data, dict) else None
+        raise CheckpointError(
+            f"{path} is not a crowdrl checkpoint of format {FORMAT_VERSION} (found format "
+            f"{'none' if found is None else found!r}, expected {FORMAT_VERSION}); this code reads format "
+            f"{FORMAT_VERSION} only: load it with the crowdrl version that wrote it, or train the run again")
     if fingerprint is not None and data.get("fingerprint") != fingerprint:
         raise CheckpointError(
             f"{path} was written by a run with another configuration (fingerprint {data.get('fingerprint')} "

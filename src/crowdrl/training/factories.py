@@ -53,10 +53,6 @@ def stored_keys(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS) -> list:
     return out
 
 
-# what a collected batch of a fixed crowd without planning contributes to the buffer
-STORED_KEYS = [*OBS_KEYS, "action", *[("next", k) for k in (*OBS_KEYS, "reward", "done", "terminated")]]
-
-
 def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
                  robot_kinematics: str = "unicycle") -> CrowdConfig:
     """The simulator constants of ``run`` (``scenario``/``num_humans`` override the run's; a given
@@ -120,11 +116,12 @@ def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase) 
     """The acting policy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
 
     Under ``ExplorationType.DETERMINISTIC`` (evaluation) the ε-greedy step passes the greedy
-    action through, so the same policy serves collection and evaluation.
+    action through, so the same policy serves collection and evaluation. The module holds ε only:
+    the trainer sets it from the schedule at each frame count (``egreedy.eps.fill_``), never by
+    the module's own annealing (``step()``).
     """
     x = run.exploration
-    egreedy = EGreedyModule(env.action_spec, eps_init=x.eps_start, eps_end=x.eps_end,
-                            annealing_num_steps=x.anneal_frames)
+    egreedy = EGreedyModule(env.action_spec, eps_init=x.eps_start, eps_end=x.eps_start)
     return TensorDictSequential(actor, egreedy), egreedy
 
 
@@ -166,6 +163,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "STORED_KEYS", "crowd_config", "make_actor", "make_buffer",
+__all__ = ["MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "crowd_config", "make_actor", "make_buffer",
            "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer", "make_predictor_of",
            "obs_keys", "stored_keys"]

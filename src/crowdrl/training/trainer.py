@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +50,11 @@ class Counters:
     best_frames: int = -1
     last_val: int = 0
     last_checkpoint: int = 0
-    history: list = field(default_factory=list)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Counters":
+        """The counters of a checkpoint (checkpoints written before ``history`` was dropped hold it: ignored)."""
+        return cls(**{f.name: data[f.name] for f in fields(cls) if f.name in data})
 
 
 class Trainer:
@@ -128,7 +132,7 @@ class Trainer:
     def load_state_dict(self, data: dict[str, Any]) -> None:
         self.loss.load_state_dict(data["loss"])
         self.optimizer.load_state_dict(data["optimizer"])
-        self.counters = Counters(**data["counters"])
+        self.counters = Counters.from_dict(data["counters"])
         self._set_rng(data)
         # (event, return, steps, goal distance at the end); older checkpoints kept no goal distance
         self._pending_episodes = [(*e, math.nan)[:4] for e in data.get("pending_episodes", [])]
@@ -335,7 +339,6 @@ class Trainer:
                 best["predictor"] = self.predictor.state_dict()
             save_checkpoint(self.ckpt_dir / "best.pt", best, self.fingerprint)
             row["val/best"] = 1
-        c.history.append((c.frames, metrics.success_rate))
         self.emit(row)
         return metrics
 
