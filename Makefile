@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 export WANDB_MODE ?= offline
 export PYTHONHASHSEED ?= 0
 
-.PHONY: install test test-slow demo bench clean
+.PHONY: install lint test test-slow demo bench clean
 
 install: $(STAMP)
 
@@ -26,7 +26,11 @@ $(STAMP): pyproject.toml
 # its module fixtures); TEST_WORKERS=1 runs them one after another. The 15 slowest tests are
 # listed at the end, to keep the suite's 10-minute budget in sight.
 TEST_WORKERS ?= 2
-test: $(STAMP)
+# the linter (ruff, configured in pyproject.toml) runs first: a lint error fails `make test`
+lint: $(STAMP)
+	$(PY) -m ruff check .
+
+test: lint
 	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 test-slow: $(STAMP)

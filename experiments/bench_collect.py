@@ -9,7 +9,8 @@ collector with the ε-greedy SG-D3QN policy, and where a collected frame goes.
         --configs compiled:compiled --profile-backend none
 
 Each configuration (the baseline checkout's ``experiments/bench_train.py``, then this checkout's
-with the eager or compiled ORCA and the eager or compiled acting network, ``--configs``) runs in its own subprocess, one thread, 64 environments;
+with the eager or compiled ORCA and the eager or compiled acting network, ``--configs``) runs in its own
+subprocess, one thread, 64 environments;
 the configurations alternate ``--rounds`` times so that a slow spell of the machine hits them
 alike, and the table gives each one's median frames/s and its ratio to the baseline's median.
 The profile (this checkout, ``--profile-backend``) splits the collector's time into the env

@@ -112,7 +112,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     hours = collect_h + BUDGET_UPDATES * update_ms / 1e3 / 3600
     # what one update may cost for collection + updates to fit in one hour at this collection rate
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
-    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s, "update_ms": update_ms,
+    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s,
+            "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
             "update_ms_for_1h_budget": update_ms_for_1h}, flop_probe
 

@@ -5,7 +5,8 @@
 
 Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (a few minutes in
 all on 2 cores). A run killed (SIGKILL or SIGTERM) and resumed with `train.save_buffer=true` must
-end with the same weights and test metrics, bit for bit, as the run that was never stopped. The same behaviours are asserted in `tests/test_reliability.py`.
+end with the same weights and test metrics, bit for bit, as the run that was never stopped. The same behaviours are
+asserted in `tests/test_reliability.py`.
 """
 
 from __future__ import annotations

@@ -12,7 +12,6 @@ from torchrl.envs.utils import check_env_specs
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric, robot_centric
 from crowdrl.sim import rng
-from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.scenarios import initial_states
 
 

@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = {"logger": {"name": "csv", "progress_bar": False}, "preset": "smoke",
         "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 160, "buffer_size": 1000, "batch_size": 16,
                   "warmup_frames": 32, "updates_per_frame": 0.25, "target_update_frames": 64,
-                  "val_every_frames": 160, "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 4, "compile_loss": False},
+                  "val_every_frames": 160, "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 4,
+                  "compile_loss": False},
         "env": {"num_humans": 4}}
 
 

@@ -83,7 +83,8 @@ def folder_hashes(folder: Path) -> dict[str, str]:
 def smoke_runs(tmp_path_factory) -> list[Path]:
     """Two finished smoke runs (seeds 0 and 1) made by train.py."""
     base = tmp_path_factory.mktemp("runs")
-    procs = [subprocess.Popen([*TRAIN, "preset=smoke", "logger=csv", "logger.render=false", f"seed={s}", f"hydra.run.dir={base / f's{s}'}"],
+    procs = [subprocess.Popen([*TRAIN, "preset=smoke", "logger=csv", "logger.render=false", f"seed={s}",
+                               f"hydra.run.dir={base / f's{s}'}"],
                               env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for s in (0, 1)]
     for p in procs:
         assert p.wait(timeout=300) == 0, p.stderr.read()[-2000:]
@@ -229,7 +230,8 @@ def test_orca_backend_is_a_validated_config_key_that_reaches_the_env():
 EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "preset": "smoke",
          "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 288, "buffer_size": 1000, "batch_size": 16,
                    "warmup_frames": 32, "updates_per_frame": 0.25, "target_update_frames": 64, "val_every_frames": 96,
-                   "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 4, "save_buffer": True, "compile_loss": False},
+                   "val_episodes": 4, "checkpoint_every_frames": 64, "test_episodes": 4, "save_buffer": True,
+                   "compile_loss": False},
          "env": {"num_humans": 4}}
 
 

@@ -298,7 +298,8 @@ def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
     assert (status["frames"], status["updates"]) == (ref["frames"], ref["updates"]) == (512, status["updates"])
     weights, ref_weights = (load_checkpoint(d / "checkpoints" / "last.pt")["loss"] for d in (run_dir, ref_dir))
     assert all(torch.equal(weights[k], ref_weights[k]) for k in ref_weights), "with its buffer, resume is exact"
-    assert json.loads((run_dir / "eval.json").read_text())["metrics"] == json.loads((ref_dir / "eval.json").read_text())["metrics"]
+    metrics = [json.loads((d / "eval.json").read_text())["metrics"] for d in (run_dir, ref_dir)]
+    assert metrics[0] == metrics[1]
     after = _rows(run_dir)
     assert after[: len(before)] == before, "rows written before the kill must survive unchanged"
     frames = [r["frames"] for r in after if r["kind"] == "val"]

@@ -1,6 +1,7 @@
 """Makes orca_no_obstacle_baseline.npz: orca_solve's outputs at commit c377921 (before obstacle ORCA) on
 random padded scenes, the fixture that keeps the no-obstacle path bit-identical (run from the repo root)."""
-import numpy as np, torch
+import numpy as np
+import torch
 from crowdrl.sim.orca import orca_solve
 from crowdrl.testing import KINDS, padded_batch, random_scene
 torch.set_num_threads(1)

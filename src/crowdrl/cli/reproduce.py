@@ -14,7 +14,8 @@ Run as ``crowdrl-reproduce``, ``python -m crowdrl.cli.reproduce`` or, in a check
     python experiments/reproduce.py budget=demo 'encoders=[sarl,lstm_rl,mp_rgl]' 'variants=[egreedy,icm]'
 
 Every run is an independent Hydra job (``python -m crowdrl.cli.train``, with this interpreter and in the
-current directory) in ``<out>/runs/<variant>-s<seed>`` (SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method is ``<variant>`` or
+current directory) in ``<out>/runs/<variant>-s<seed>`` (SG-D3QN) or ``<out>/runs/<encoder>-<variant>-s<seed>``; its method
+is ``<variant>`` or
 ``<encoder>+<variant>``, compared with the ε-greedy run of the same encoder.
 A rerun skips finished runs and resumes killed ones from their last checkpoint; a folder made by
 another budget, test-case count or code version is refused. Finished runs' records (not their

@@ -263,7 +263,7 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
                     c = ((d[g] < d[e]) | ((d[g] == d[e]) & (key[g] < key[e]))).to(torch.int64)
                     rank = c if rank is None else rank + c
             ranks.append(rank if rank is not None else torch.zeros_like(X, dtype=torch.int64))
-        odx, ody, oqx, oqy, okeep, r1s, r2s = [], [], [], [], [], [], []
+        odx, ody, oqx, oqy, okeep = [], [], [], [], []
         ri = inv_tho * R
         for slot in range(O):
             sel = []

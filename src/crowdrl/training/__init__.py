@@ -6,5 +6,6 @@ from crowdrl.training.nstep import NStepReturn, nstep_transitions
 from crowdrl.training.pipeline import evaluate_best, evaluate_network, load_trained_network, run_training
 from crowdrl.training.trainer import Trainer
 
-__all__ = ["CheckpointError", "ConfigError", "NStepReturn", "RunConfig", "Trainer", "evaluate_best", "evaluate_network", "load_trained_network",
+__all__ = ["CheckpointError", "ConfigError", "NStepReturn", "RunConfig", "Trainer", "evaluate_best", "evaluate_network",
+           "load_trained_network",
            "load_checkpoint", "nstep_transitions", "run_training", "save_checkpoint", "validate"]

@@ -125,7 +125,9 @@ class TrainConfig:
     save_buffer: bool = False  # the replay buffer in last.pt: a resume is then bit-exact (~50 MB per 100k)
     test_episodes: int = 1000
     compile_acting: bool = False  # the acting Q network (collection, planning, validation, test) through torch.compile; the demo and paper presets turn it on (bench_train.py --acting)
-    compile_loss: bool = True  # the D3QN update (target, forwards, backward), and the planner's predictor update, each as one torch.compile graph (bench_train.py --loss)
+    # the D3QN update (target, forwards, backward), and the planner's predictor update, each as one
+    # torch.compile graph (bench_train.py --loss)
+    compile_loss: bool = True
 
 
 @dataclass

@@ -15,7 +15,7 @@ from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
 from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
-from crowdrl.training.run_folder import RunFolderBusy, RunFolderRefused, check_run_folder
+from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.variants import make_network
 

@@ -16,7 +16,6 @@ Example::
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 
