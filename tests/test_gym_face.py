@@ -120,6 +120,27 @@ def test_render_rgb_array():
         CrowdNavGymEnv(render_mode="ansi")
 
 
+def test_render_rgb_array_draws_the_obstacles():
+    """A doorway frame shows its wall: the pixel at (-4.5, 0) m, on the wall and clear of every agent
+    (spawns keep 0.5 m from it), is the obstacle colour; an open-space frame has none there."""
+    from matplotlib.colors import to_rgb
+
+    from crowdrl.viz.trajectory import OBSTACLE_COLOR
+
+    def pixel(env, x, y):
+        frame = env.render()
+        hw, n = 6.0, frame.shape[0]  # the view is [-6, 6]^2 for every scenario (circle radius 4 m, square 10 m)
+        return frame[int(round((hw - y) / (2 * hw) * n)), int(round((x + hw) / (2 * hw) * n))]
+
+    wall = np.round(np.array(to_rgb(OBSTACLE_COLOR)) * 255)
+    door = CrowdNavGymEnv("doorway", render_mode="rgb_array")
+    door.reset(seed=0)
+    assert np.abs(pixel(door, -4.5, 0.0).astype(float) - wall).max() <= 2
+    circle = CrowdNavGymEnv("circle", render_mode="rgb_array")
+    circle.reset(seed=0)
+    assert np.abs(pixel(circle, -4.5, 0.0).astype(float) - wall).max() > 20
+
+
 def _vec_episodes(venv, seed, resets: int) -> list[np.ndarray]:
     """The humans' start positions of ``resets`` successive resets (the first with ``seed``)."""
     out = [venv.reset(seed=seed)[0]["humans"]]

@@ -134,8 +134,7 @@ def obstacle_polygons(state, row: int) -> tuple | None:
     ``[n_i, 2]`` arrays (valid vertices only), or ``None`` without obstacles."""
     if state is None or not state.has_obstacles:
         return None
-    obs, mask = state.obstacles[row].double().cpu(), state.obstacle_mask[row].cpu()
-    return tuple(obs[p, mask[p]].numpy() for p in range(obs.shape[0]) if int(mask[p].sum()) >= 2)
+    return tuple(p.numpy() for p in state.obstacle_polygons(row))
 
 
 def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str,

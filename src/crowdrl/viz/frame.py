@@ -6,12 +6,14 @@ global backend switch.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from crowdrl.viz.trajectory import GOAL_COLOR, ROBOT_COLOR, _heading_segment, _human_colors
+from crowdrl.viz.trajectory import GOAL_COLOR, ROBOT_COLOR, _heading_segment, _human_colors, draw_obstacles
 
 __all__ = ["render_frame"]
 
@@ -27,8 +29,10 @@ def render_frame(
     half_width: float = 6.0,
     size_px: int = 400,
     title: str | None = None,
+    obstacles: Sequence[np.ndarray] = (),
 ) -> np.ndarray:
-    """Draw the robot, its goal and the humans; return a ``[size_px, size_px, 3]`` uint8 image.
+    """Draw the robot, its goal, the humans and any obstacle polygons (``[n_i, 2]`` arrays: a
+    wall has 2 vertices); return a ``[size_px, size_px, 3]`` uint8 image.
 
     The view is the square ``[-half_width, half_width]^2`` (fixed, so frames of an episode line
     up); ``human_positions`` is ``[N, 2]``.
@@ -56,6 +60,7 @@ def render_frame(
     ax.set_xticks([])
     ax.set_yticks([])
     ax.grid(False)
+    draw_obstacles(ax, [np.asarray(p, dtype=np.float64) for p in obstacles])
     for h, (xy, color) in enumerate(zip(humans, _human_colors(len(humans)))):
         ax.add_patch(Circle(xy, human_radius, facecolor=(*color[:3], 0.35), edgecolor=color, lw=1.5))
         ax.text(*xy, str(h), fontsize=7, ha="center", va="center")

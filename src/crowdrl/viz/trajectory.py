@@ -121,9 +121,10 @@ def _heading_segment(center: np.ndarray, heading: float, radius: float) -> np.nd
 # ----------------------------------------------------------------------------- static plot
 
 
-def _draw_obstacles(ax: Axes, traj: Trajectory) -> None:
-    """Walls as thick lines, solid polygons as filled patches (``gid == OBSTACLE_GID``)."""
-    for poly in traj.obstacles or ():
+def draw_obstacles(ax: Axes, polygons) -> None:
+    """Obstacle ``polygons`` (``[n_i, 2]`` arrays) on ``ax``: walls (``n_i = 2``) as thick lines,
+    solid polygons as filled patches (``gid == OBSTACLE_GID``)."""
+    for poly in polygons or ():
         if len(poly) == 2:
             ax.plot(poly[:, 0], poly[:, 1], color=OBSTACLE_COLOR, lw=4.0, solid_capstyle="butt", zorder=2,
                     gid=OBSTACLE_GID)
@@ -134,7 +135,7 @@ def _draw_obstacles(ax: Axes, traj: Trajectory) -> None:
 
 def _draw_episode(ax: Axes, traj: Trajectory) -> None:
     """Obstacles, paths, time-stamped circles, headings and the goal of one episode on ``ax``."""
-    _draw_obstacles(ax, traj)
+    draw_obstacles(ax, traj.obstacles)
     colors = _human_colors(traj.num_humans)
     stamps = _stamp_indices(traj)
 
@@ -295,7 +296,7 @@ def animate_trajectory(
     ax = fig.add_subplot()
     colors = _human_colors(traj.num_humans)
     _set_limits(ax, traj, include_human_goals=show_human_goals)
-    _draw_obstacles(ax, traj)  # static: part of the frozen background
+    draw_obstacles(ax, traj.obstacles)  # static: part of the frozen background
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, lw=0.4, alpha=0.4)
