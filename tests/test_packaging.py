@@ -68,7 +68,7 @@ def test_the_wheel_holds_every_package_every_config_the_license_and_the_console_
     requires = [line.split(":", 1)[1].strip() for line in metadata.splitlines() if line.startswith("Requires-Dist:")]
     base = [r for r in requires if "extra ==" not in r]
     assert {r.split(">")[0].split("<")[0].split("=")[0] for r in base} == {
-        "torch", "torchrl", "tensordict", "gymnasium", "numpy", "hydra-core", "omegaconf"}, base
+        "torch", "torchrl", "tensordict", "gymnasium", "numpy", "filelock", "hydra-core", "omegaconf"}, base
     assert any(r.startswith("wandb") and "extra == \"train\"" in r for r in requires), requires
     assert any(r.startswith("onnxruntime") and "extra == \"export\"" in r for r in requires), requires
     assert "Project-URL: Paper, https://arxiv.org/abs/2302.06554" in metadata

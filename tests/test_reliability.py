@@ -190,8 +190,8 @@ def test_a_second_writer_to_a_run_folder_is_refused(tmp_path):
     first = lock_run_dir(tmp_path)
     with pytest.raises(RunFolderBusy, match="another process"):
         lock_run_dir(tmp_path)
-    first.close()
-    lock_run_dir(tmp_path).close()  # free again once the holder is gone
+    first.release()
+    lock_run_dir(tmp_path).release()  # free again once the holder is gone
 
 
 def test_run_folder_names_carry_a_random_suffix():

@@ -90,7 +90,7 @@ def test_a_second_run_into_a_locked_folder_is_refused_before_any_write(finished_
     try:
         proc = train("preset=smoke", "logger=csv", "seed=5", f"hydra.run.dir={run}")
     finally:
-        holder.close()
+        holder.release()
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert folder_state(run) == before
     assert "another process" in proc.stderr  # the lock is the first check, before the fingerprint's
@@ -103,7 +103,7 @@ def test_run_training_calls_prepare_only_once_the_lock_is_held(tmp_path):
     called = []
     with pytest.raises(RunFolderBusy):
         run_training(validate(RunConfig()), tmp_path, prepare=lambda: called.append(1))
-    holder.close()
+    holder.release()
     assert not called and [p.name for p in tmp_path.iterdir()] == [".lock"]
 
 
@@ -445,7 +445,7 @@ def test_a_second_reproduce_py_on_the_same_out_is_refused_before_it_writes(tmp_p
                                "variants=[egreedy]", "seeds=[0]", "episodes=2", f"out={out}"],
                               env=ENV, capture_output=True, text=True, timeout=300, cwd=ROOT)
     finally:
-        holder.close()
+        holder.release()
     assert proc.returncode == 2 and "another reproduce.py" in proc.stderr, proc.stderr[-2000:]
     assert folder_state(out) == before
 

@@ -474,7 +474,7 @@ def reproduce(plan: Plan) -> dict[str, Any]:
     try:
         return _reproduce(plan, start)
     finally:
-        lock.close()
+        lock.release()
 
 
 def _reproduce(plan: Plan, start: float) -> dict[str, Any]:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
+from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json
@@ -43,12 +44,12 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
         done = completed_summary(run_dir) if trainer.counters.frames >= run.train.total_frames else None
         if done is not None:
             trainer.close()
-            lock.close()
+            lock.release()
             return done
         if prepare is not None and resumed is None:
             prepare()
     except BaseException:
-        lock.close()
+        lock.release()
         raise
     start = time.perf_counter()
     try:
@@ -66,7 +67,7 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
         raise
     finally:
         trainer.close()
-        lock.close()
+        lock.release()
     if render:
         from crowdrl.viz import plot_learning_curves
 
@@ -75,19 +76,19 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
     return summary
 
 
-def lock_run_dir(run_dir: Path):
-    """An exclusive lock on ``run_dir/.lock`` for this process (released when it exits, even on a
-    kill): a second writer to the same run folder fails at once instead of mixing files."""
-    import fcntl
-
+def lock_run_dir(run_dir: Path) -> FileLock:
+    """An exclusive lock on ``run_dir/.lock`` (``filelock``'s OS lock: released when this process
+    exits, even on a kill; ``.release()`` frees it earlier): a second writer to the same run folder,
+    in this process or another, fails at once instead of mixing files. The ``.lock`` file stays,
+    marking the folder as a run folder."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    handle = open(run_dir / ".lock", "a")
+    # no soft-lock fallback: a soft lock outlives a killed process and would refuse every resume
+    lock = FileLock(run_dir / ".lock", timeout=0, thread_local=False, fallback_to_soft=False, preserve_lock_file=True)
     try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        handle.close()
+        lock.acquire()
+    except Timeout:
         raise RunFolderBusy(f"{run_dir} is being written by another process; give this run its own folder") from None
-    return handle
+    return lock
 
 
 def completed_summary(run_dir: Path | str) -> dict[str, Any] | None:
