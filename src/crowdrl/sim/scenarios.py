@@ -151,6 +151,29 @@ def crowd_sizes(cfg: CrowdConfig, episode_key: Tensor) -> Tensor:
     return cfg.min_humans + torch.clamp((u * span).long(), max=span - 1)
 
 
+def _start_state(robot_pos: Tensor, robot_goal: Tensor, positions: Tensor, goals: Tensor, episode_key: Tensor,
+                 human_mask: Tensor | None, obstacles: Tensor, obstacle_mask: Tensor) -> CrowdState:
+    """An episode's first state: everyone at rest, the robot facing +y; ``positions`` / ``goals``
+    ``[B, 1 + N, 2]`` hold the robot's row first, then the humans'."""
+    B, N = positions.shape[0], positions.shape[1] - 1
+    dtype, device = positions.dtype, positions.device
+    return CrowdState(
+        robot_position=robot_pos,
+        robot_velocity=torch.zeros(B, 2, dtype=dtype, device=device),
+        robot_heading=torch.full((B,), math.pi / 2, dtype=dtype, device=device),
+        robot_goal=robot_goal,
+        human_position=positions[:, 1:].clone(),
+        human_velocity=torch.zeros(B, N, 2, dtype=dtype, device=device),
+        human_goal=goals[:, 1:].clone(),
+        human_goal_steps=torch.zeros(B, N, dtype=torch.int64, device=device),
+        step_count=torch.zeros(B, dtype=torch.int64, device=device),
+        episode_key=episode_key.clone(),
+        human_mask=human_mask,
+        obstacles=obstacles,
+        obstacle_mask=obstacle_mask,
+    )
+
+
 def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = torch.float32) -> CrowdState:
     """Initial states of the episodes with keys ``episode_key [B]`` (see :func:`rng.episode_keys`).
 
@@ -260,21 +283,8 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
             start, goal = torch.where(here, start, parked), torch.where(here, goal, parked)
         positions[:, h + 1], goals[:, h + 1] = start, goal
 
-    return CrowdState(
-        robot_position=robot_pos,
-        robot_velocity=torch.zeros(B, 2, dtype=dtype, device=device),
-        robot_heading=torch.full((B,), math.pi / 2, dtype=dtype, device=device),
-        robot_goal=robot_goal,
-        human_position=positions[:, 1:].clone(),
-        human_velocity=torch.zeros(B, N, 2, dtype=dtype, device=device),
-        human_goal=goals[:, 1:].clone(),
-        human_goal_steps=torch.zeros(B, N, dtype=torch.int64, device=device),
-        step_count=torch.zeros(B, dtype=torch.int64, device=device),
-        episode_key=episode_key.clone(),
-        human_mask=human_mask,
-        obstacles=torch.zeros(B, 0, 2, 2, dtype=dtype, device=device),  # open: no obstacles
-        obstacle_mask=torch.zeros(B, 0, 2, dtype=torch.bool, device=device),
-    )
+    no_obstacles = torch.zeros(B, 0, 2, 2, dtype=dtype, device=device), torch.zeros(B, 0, 2, dtype=torch.bool, device=device)
+    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, *no_obstacles)
 
 
 def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> Tensor:
@@ -504,21 +514,7 @@ def _obstacle_initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch
             positions[done, h + 1], goals[done, h + 1] = s_pick[hit], g_pick[hit]
             episodes = episodes[~hit]
             first += rounds
-    return CrowdState(
-        robot_position=robot_pos,
-        robot_velocity=torch.zeros(B, 2, dtype=dtype, device=device),
-        robot_heading=torch.full((B,), math.pi / 2, dtype=dtype, device=device),
-        robot_goal=robot_goal,
-        human_position=positions[:, 1:].clone(),
-        human_velocity=torch.zeros(B, N, 2, dtype=dtype, device=device),
-        human_goal=goals[:, 1:].clone(),
-        human_goal_steps=torch.zeros(B, N, dtype=torch.int64, device=device),
-        step_count=torch.zeros(B, dtype=torch.int64, device=device),
-        episode_key=episode_key.clone(),
-        human_mask=human_mask,
-        obstacles=obstacles,
-        obstacle_mask=obstacle_mask,
-    )
+    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, obstacles, obstacle_mask)
 
 
 def _obstacle_new_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> Tensor:
