@@ -287,6 +287,17 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
     return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, *no_obstacles)
 
 
+def _goal_draws(state: CrowdState, env: Tensor, human: Tensor, rounds: int) -> tuple[Tensor, ...]:
+    """Four uniforms ``[M, rounds]`` per candidate new goal of humans ``(env, human)`` (``[M]`` each),
+    a pure function of the episode key, the step and the human."""
+    M, device = env.shape[0], state.device
+    r = torch.arange(rounds, device=device).view(1, rounds, 1)
+    comps = torch.arange(4, device=device).view(1, 1, 4)
+    index = (human.view(M, 1, 1) * rounds + r) * 4 + comps
+    return rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
+                       index, dtype=state.human_goal.dtype).unbind(-1)
+
+
 def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> Tensor:
     """Goals ``[B, N, 2]`` for non-stop humans: fresh ones where ``needs_goal [B, N]``.
 
@@ -297,15 +308,10 @@ def new_human_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> 
     """
     if cfg.scenario in OBSTACLE_SCENARIOS:
         return _obstacle_new_goals(cfg, state, needs_goal)
-    dtype, device = state.human_goal.dtype, state.device
+    dtype = state.human_goal.dtype
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
-    rounds = torch.arange(GOAL_ROUNDS, device=device).view(1, GOAL_ROUNDS, 1)
-    comps = torch.arange(4, device=device).view(1, 1, 4)
-    index = (human.view(M, 1, 1) * GOAL_ROUNDS + rounds) * 4 + comps
-    draws = rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
-                        index, dtype=dtype)  # [M, R, 4]
-    u = draws.unbind(-1)
+    u = _goal_draws(state, env, human, GOAL_ROUNDS)
     if cfg.scenario == "circle":
         cand = _circle_points(cfg, u[0], u[1], u[2])  # [M, R, 2]
     else:
@@ -523,14 +529,10 @@ def _obstacle_new_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor)
     with a clear straight path from where the human stands, preferably also clear of every agent; a
     human none of whose ``OBSTACLE_GOAL_ROUNDS`` candidates has a clear path keeps its goal (it asks again on
     the next step, with new draws)."""
-    dtype, device = state.human_goal.dtype, state.device
+    dtype = state.human_goal.dtype
     env, human = needs_goal.nonzero(as_tuple=True)  # [M]
     M = env.shape[0]
-    rounds = torch.arange(OBSTACLE_GOAL_ROUNDS, device=device).view(1, OBSTACLE_GOAL_ROUNDS, 1)
-    comps = torch.arange(4, device=device).view(1, 1, 4)
-    index = (human.view(M, 1, 1) * OBSTACLE_GOAL_ROUNDS + rounds) * 4 + comps
-    u = rng.uniform(state.episode_key[env].view(M, 1, 1), _TAG_NEW_GOAL, state.step_count[env].view(M, 1, 1),
-                    index, dtype=dtype).unbind(-1)  # [M, R] each
+    u = _goal_draws(state, env, human, OBSTACLE_GOAL_ROUNDS)
     here = state.human_position[env, human]  # [M, 2]
     if cfg.scenario == "room":
         side = torch.where(u[3] > 0.5, -1.0, 1.0).to(dtype)
