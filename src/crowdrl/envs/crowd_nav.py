@@ -16,9 +16,9 @@ from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
 SPLITS = tuple(rng.STREAMS)
-SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (~0.04 ms each, vs ~8 ms for one alone)
-# Larger batches spawn larger blocks (a spawn's per-call cost is then shared by more episodes: ~0.017 ms each
-# at 4096), up to this many episodes ahead (~1.5 MB of states at N = 10).
+SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (per-episode cost: docs/benchmarks.md, "Spawning")
+# Larger batches spawn larger blocks (a spawn's per-call cost is then shared by more episodes), up to this
+# many episodes ahead (~1.5 MB of states at N = 10).
 SPAWN_BLOCK_MAX = 8192
 
 
