@@ -16,9 +16,9 @@ from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
 SPLITS = tuple(rng.STREAMS)
-SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (~0.04 ms each, vs ~8 ms for one alone)
-# Larger batches spawn larger blocks (a spawn's per-call cost is then shared by more episodes: ~0.017 ms each
-# at 4096), up to this many episodes ahead (~1.5 MB of states at N = 10).
+SPAWN_BLOCK = 1024  # episodes of the stream spawned in one batched call (per-episode cost: docs/benchmarks.md, "Spawning")
+# Larger batches spawn larger blocks (a spawn's per-call cost is then shared by more episodes), up to this
+# many episodes ahead (~1.5 MB of states at N = 10).
 SPAWN_BLOCK_MAX = 8192
 
 
@@ -50,10 +50,34 @@ class CrowdNavEnv(EnvBase):
 
     :meth:`snapshot` and :meth:`restore` save and reload the in-flight episodes for an exact
     resume: after ``restore``, the next reset hands back the episodes as they were, so a new
-    collector continues them step for step::
+    collector continues them step for step.
 
-        saved = env.snapshot()          # e.g. into a checkpoint
-        env2.restore(saved); env2.reset()  # the same observations, the same future
+    Examples:
+        Three episodes of five humans, reset and stepped with a random action:
+
+        >>> import torch
+        >>> from crowdrl.envs import CrowdNavEnv
+        >>> _ = torch.manual_seed(0)
+        >>> env = CrowdNavEnv("circle", num_envs=3, num_humans=5, seed=0)
+        >>> td = env.reset()
+        >>> td["robot"].shape, td["humans"].shape, td["humans_mask"].dtype
+        (torch.Size([3, 9]), torch.Size([3, 5, 5]), torch.bool)
+        >>> env.action_spec.space.n
+        81
+        >>> td = env.rand_step(td)
+        >>> td["next", "reward"].shape, td["next", "done"].shape
+        (torch.Size([3, 1]), torch.Size([3, 1]))
+        >>> sorted(env.full_done_spec.keys())
+        ['done', 'terminated', 'truncated']
+
+        Episode ids come from the stream, one per sub-env; a snapshot resumes them elsewhere:
+
+        >>> td["episode_id"].flatten().tolist()
+        [0, 1, 2]
+        >>> env2 = CrowdNavEnv("circle", num_envs=3, num_humans=5, seed=0)
+        >>> env2.restore(env.snapshot())
+        >>> torch.equal(env2.reset()["robot"], td["next", "robot"])
+        True
     """
 
     def __init__(

@@ -59,6 +59,23 @@ class ICM(IntrinsicBonus):
         seed: if given, the heads are initialised from this seed without touching the global RNG.
 
     Actions may be indices (``[*B]`` or ``[*B, 1]``, any dtype) or one-hot (``[*B, A]``).
+
+    Examples:
+        A bonus for a batch of eight transitions with 4-d observations and 3 actions:
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torch import nn
+        >>> from crowdrl.exploration import ICM
+        >>> _ = torch.manual_seed(0)
+        >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.randint(0, 3, (8,)),
+        ...                     ("next", "observation"): torch.randn(8, 4)}, batch_size=[8])
+        >>> icm = ICM(nn.Linear(4, 16), num_actions=3, feature_dim=16, seed=0)
+        >>> r_in = icm.bonus(batch)
+        >>> r_in.shape, bool(torch.isfinite(r_in).all()), bool((r_in >= 0).all())
+        (torch.Size([8]), True, True)
+        >>> sorted(icm.update(batch))  # one Adam step; the scalars to log
+        ['icm_feature_norm', 'icm_forward_loss', 'icm_inverse_accuracy', 'icm_inverse_loss', 'icm_loss']
     """
 
     def __init__(

@@ -158,6 +158,32 @@ class IntrinsicRewardTransform(Transform):
     ``beta == 0`` returns the extrinsic reward bit for bit. Neither the transform nor the
     bundled bonuses draw from the global RNG. ``inv`` (run at ``extend``) is the identity, and
     stored rewards never change. The scalars of the last call are kept in :attr:`last_stats`.
+
+    Examples:
+        An RE3 bonus added to the sampled rewards of a replay buffer (``beta = 0.1``):
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torch import nn
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from crowdrl.exploration import RE3, IntrinsicRewardTransform
+        >>> _ = torch.manual_seed(0)
+        >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.randint(0, 3, (8,)),
+        ...                     ("next", "observation"): torch.randn(8, 4),
+        ...                     ("next", "reward"): torch.zeros(8, 1)}, batch_size=[8])
+        >>> transform = IntrinsicRewardTransform(RE3(nn.Linear(4, 16), feature_dim=16, seed=0), beta=0.1)
+        >>> buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=8, transform=transform)
+        >>> _ = buffer.extend(batch)
+        >>> sample = buffer.sample()
+        >>> sorted(sample["next"].keys())
+        ['observation', 'reward', 'reward_ext', 'reward_int']
+        >>> r = sample["next"]
+        >>> bool((r["reward"] > r["reward_ext"]).all())  # RE3's bonus is positive
+        True
+        >>> torch.allclose(r["reward"], r["reward_ext"] + 0.1 * r["reward_int"])
+        True
+        >>> bool((buffer.storage.get(slice(None))["next", "reward"] == 0).all())  # the storage is untouched
+        True
     """
 
     def __init__(

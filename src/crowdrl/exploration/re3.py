@@ -52,6 +52,25 @@ class RE3(IntrinsicBonus):
         embed_next: embed ``s'`` (default) or ``s``; see the module docstring.
         eps: floor of the running std.
         seed: if given, the random head is drawn from this seed without touching the global RNG.
+
+    Examples:
+        A bonus for a batch of eight transitions with 4-d observations (RE3 embeds ``s'``):
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torch import nn
+        >>> from crowdrl.exploration import RE3
+        >>> _ = torch.manual_seed(0)
+        >>> batch = TensorDict({"observation": torch.randn(8, 4), "action": torch.randint(0, 3, (8,)),
+        ...                     ("next", "observation"): torch.randn(8, 4)}, batch_size=[8])
+        >>> re3 = RE3(nn.Linear(4, 16), feature_dim=16, k=3, seed=0)
+        >>> r_in = re3.bonus(batch)
+        >>> r_in.shape, bool(torch.isfinite(r_in).all()), bool((r_in >= 0).all())
+        (torch.Size([8]), True, True)
+        >>> sum(p.requires_grad for p in re3.parameters())  # the encoder is frozen
+        0
+        >>> sorted(re3.update(batch))  # nothing to train
+        ['re3_dist_std']
     """
 
     def __init__(

@@ -12,7 +12,7 @@ from torch._inductor.exc import InductorError
 
 
 # Inductor's C++ wrapper: the compiled graph's kernel calls are made from C++ rather than a
-# generated Python function: ~2-6 ms less per D3QN update in paired bench_train.py runs on the 2-core CPU.
+# generated Python function: a faster D3QN update (docs/benchmarks.md).
 CPP_WRAPPER: dict[str, Any] = {"cpp_wrapper": True}
 
 
@@ -56,8 +56,8 @@ class CompiledModule(nn.Module):
 
     The parameters are ``module``'s own (shared, not copied), so training it updates what this
     computes. Each batch shape compiles its own static graph (a run meets a few: the collector's,
-    the planner's candidates, validation's and the test's; at B = 64 a static graph ran ~2x
-    faster than a dynamic-shape one here). Random ops (dropout) draw from torch's generator as in
+    the planner's candidates, validation's and the test's; a static graph runs faster than a
+    dynamic-shape one, docs/benchmarks.md). Random ops (dropout) draw from torch's generator as in
     eager (inductor's ``fallback_random``), so the random stream is eager's; the outputs equal
     eager's to float rounding (inductor fuses and reorders some sums).
 

@@ -72,7 +72,7 @@ def _score_backward(rows: Tensor, cols: Tensor, bias: Tensor, w: Tensor, grad: T
     pre = rows.unsqueeze(-2) + cols.unsqueeze(-3) + bias
     g = grad.unsqueeze(-1)
     # summed over the columns first: inductor then fuses it into the loop of grad_rows (same [B, R, K]
-    # space) instead of a separate strided pass over [B*R*C, K] (~3x faster backward at batch 100)
+    # space) instead of a separate strided pass over [B*R*C, K] (a faster backward; docs/benchmarks.md)
     grad_w = (g * torch.relu(pre)).sum(-2).reshape(-1, w.shape[-1]).sum(0)
     gm = torch.where(pre > 0, g, 0.0)  # d score / d pre-activation, without w
     grad_rows = gm.sum(-2) * w
@@ -84,8 +84,8 @@ class PairwiseKernels:
 
     Eager torch materialises the ``[B, R, C, 64]`` pre-activation several times per pass (add,
     ReLU, product, reduction, and as many again in the backward); inductor fuses each pass into
-    one loop nest that never writes it to memory: about 3x faster forward and backward on CPU
-    at batch 100. Compiled lazily on first use (cached by inductor on disk); the
+    one loop nest that never writes it to memory (faster forward and backward on CPU:
+    docs/benchmarks.md). Compiled lazily on first use (cached by inductor on disk); the
     forward specialises to its first shape and then compiles one dynamic-shape version, the
     backward specialises to every shape it sees (training uses one or two). ``backend="eager"``
     (or ``CROWDRL_PAIRWISE=eager``) uses the same functions uncompiled; if compilation fails (no
@@ -101,7 +101,7 @@ class PairwiseKernels:
         compiled, hint = backend == "compiled", "set CROWDRL_PAIRWISE=eager to silence"
         self.forward = LazyCompiled(_score_forward, dynamic=None, what="the pairwise attention kernel",
                                     hint=hint, enabled=compiled)
-        # static shapes: the dynamic-shape backward kernel is ~2.5x slower, and training sees few shapes
+        # static shapes: the dynamic-shape backward kernel is slower (docs/benchmarks.md), and training sees few shapes
         self.backward = LazyCompiled(_score_backward, dynamic=False, what="the pairwise attention kernel",
                                      hint=hint, enabled=compiled)
 
@@ -147,8 +147,8 @@ class _PairwiseScore(torch.autograd.Function):
 def _softmax_last(logits: Tensor) -> Tensor:
     """``softmax(logits, -1)`` for a short last dim (the N+1 nodes).
 
-    Same values and gradient as ``torch.softmax``; about 3x cheaper on CPU for rows of ~10,
-    where ATen's softmax kernel is slow. The max is detached: softmax does not depend on the
+    Same values and gradient as ``torch.softmax``; cheaper on CPU for rows of ~10, where
+    ATen's softmax kernel is slow (docs/benchmarks.md). The max is detached: softmax does not depend on the
     shift, so its gradient through the max is exactly zero.
     """
     e = torch.exp(logits - logits.detach().amax(dim=-1, keepdim=True))

@@ -64,6 +64,28 @@ class OnlinePlanner(TensorDictModuleBase):
 
     Writes ``"action"`` ``[*]``, ``"action_value"`` ``[*, A]`` (Q(s, ·)) and
     ``"chosen_action_value"`` ``[*, 1]`` (Q of the chosen action), as ``QValueActor`` does.
+
+    Examples:
+        One step ahead over the top 4 actions of a (untrained) SARL Q network, the humans
+        predicted at constant velocity, on two environments:
+
+        >>> import torch
+        >>> from crowdrl.envs import CrowdNavEnv
+        >>> from crowdrl.models.predictor import ConstantVelocityPredictor
+        >>> from crowdrl.models.qnet import make_q_network
+        >>> from crowdrl.policies import OnlinePlanner
+        >>> _ = torch.manual_seed(0)
+        >>> env = CrowdNavEnv("circle", num_envs=2, num_humans=5)
+        >>> planner = OnlinePlanner(make_q_network("sarl"), ConstantVelocityPredictor(env.config.time_step),
+        ...                         env.config, gamma=0.97, depth=1, width=4)
+        >>> td = planner(env.reset())
+        >>> td["action"].shape, td["action"].dtype, td["action_value"].shape, td["chosen_action_value"].shape
+        (torch.Size([2]), torch.int64, torch.Size([2, 81]), torch.Size([2, 1]))
+        >>> plan = planner.plan(td["robot"], td["humans"])
+        >>> plan.candidates.shape, bool((plan.candidates == plan.action.unsqueeze(-1)).any(-1).all())
+        (torch.Size([2, 4]), True)
+        >>> env.step(td)["next", "reward"].shape
+        torch.Size([2, 1])
     """
 
     def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,

@@ -78,8 +78,8 @@ _INT_OF = {torch.float64: torch.int64, torch.float32: torch.int32, torch.float16
 def _select(cond: Tensor, a: Tensor, b: Tensor | float) -> Tensor:
     """``torch.where(cond, a, b)``, bit for bit, without branches.
 
-    ATen's CPU ``where`` is a scalar loop whose branch mispredicts on irregular masks (about
-    10x slower than a vectorised op); this selects through the integer bit patterns instead.
+    ATen's CPU ``where`` is a scalar loop whose branch mispredicts on irregular masks (much
+    slower than a vectorised op; docs/benchmarks.md); this selects through the integer bit patterns instead.
     """
     if cond.numel() < 4096:  # small: the op count matters more than the mispredictions
         return torch.where(cond, a, b)
@@ -106,8 +106,8 @@ def _sqrt(x: Tensor) -> Tensor:
 def require_finite(**tensors: Tensor) -> None:
     """Refuse NaN or infinite values with a ``ValueError`` naming the first such argument.
 
-    One ``isfinite().all()`` over all of them at once and one host sync (~1-3 % of a CPU step of
-    ``crowd.step`` at B = 64..1024; a check per tensor costs ~3x more at small batches), once per
+    One ``isfinite().all()`` over all of them at once and one host sync (a small share of a CPU step of
+    ``crowd.step``; a check per tensor costs more at small batches: docs/benchmarks.md), once per
     public call, never inside a kernel. Only on failure is each tensor checked alone, to name it."""
     if bool(torch.isfinite(torch.cat([t.reshape(-1) for t in tensors.values()])).all()):
         return

@@ -145,6 +145,33 @@ class PlanningConfig:
 
 @dataclass
 class RunConfig:
+    """One run's whole configuration: the groups of ``conf/`` as typed sections.
+
+    Build it with :func:`validate` from a Hydra tree, a plain dict of overrides or a
+    ``RunConfig``; keys left out take the schema's defaults.
+
+    Examples:
+        >>> from crowdrl.training import ConfigError, RunConfig, validate
+        >>> run = validate({"seed": 3, "encoder": {"name": "sarl"}, "train": {"batch_size": 32}})
+        >>> type(run).__name__, run.seed, run.encoder.name, run.train.batch_size
+        ('RunConfig', 3, 'sarl', 32)
+        >>> run = RunConfig(seed=1)
+        >>> run.train.lr = 5e-4
+        >>> validate(run).train.lr
+        0.0005
+
+        An unknown key or a value out of range fails at once, naming the key:
+
+        >>> validate({"train": {"batch_sise": 32}})
+        Traceback (most recent call last):
+            ...
+        crowdrl.training.config.ConfigError: Key 'batch_sise' not in 'TrainConfig' (key 'train.batch_sise'; ...)
+        >>> validate({"train": {"gamma": 1.5}})
+        Traceback (most recent call last):
+            ...
+        crowdrl.training.config.ConfigError: train.gamma: must lie in (0, 1], got 1.5
+    """
+
     env: EnvConfig = field(default_factory=EnvConfig)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)

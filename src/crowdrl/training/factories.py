@@ -132,8 +132,8 @@ def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_
 
 
 def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None) -> torch.optim.Optimizer:
-    """Adam at ``lr`` (default ``train.lr``); fused (one kernel for all parameters, ~4x cheaper than
-    the per-tensor loop on CPU): the Q network's and the crowd predictor's."""
+    """Adam at ``lr`` (default ``train.lr``); fused (one kernel for all parameters, cheaper than
+    the per-tensor loop on CPU; docs/benchmarks.md): the Q network's and the crowd predictor's."""
     return torch.optim.Adam(net.parameters(), lr=run.train.lr if lr is None else lr, fused=True)
 
 

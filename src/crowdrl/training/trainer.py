@@ -58,6 +58,38 @@ class Counters:
 
 
 class Trainer:
+    """One D3QN run of ``run`` in the folder ``run_dir`` (see the module docstring for the loop).
+
+    :meth:`train` trains to ``train.total_frames`` (resuming from ``run_dir/checkpoints/last.pt``
+    when it is there) and returns a summary; :meth:`save` and :meth:`restore` write and read
+    checkpoints; :meth:`request_stop` makes the loop checkpoint and stop after the current batch;
+    :meth:`close` closes the logs. The final test is :func:`crowdrl.training.run_training`'s.
+
+    Examples:
+        A 64-frame run on four environments (SARL encoder, nothing compiled, no planning):
+
+        >>> import os, tempfile
+        >>> from crowdrl.training import Trainer, validate
+        >>> run = validate({
+        ...     "preset": "smoke", "encoder": {"name": "sarl"}, "env": {"num_humans": 4, "orca_backend": "eager"},
+        ...     "logger": {"name": "csv", "progress_bar": False, "render": False},
+        ...     "planning": {"enabled": False}, "exploration": {"name": "egreedy"},
+        ...     "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": 64, "warmup_frames": 32,
+        ...               "batch_size": 16, "buffer_size": 1000, "updates_per_frame": 0.25,
+        ...               "target_update_frames": 32, "val_every_frames": 64, "val_episodes": 2,
+        ...               "checkpoint_every_frames": 64, "test_episodes": 2,
+        ...               "compile_acting": False, "compile_loss": False}})
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     trainer = Trainer(run, folder)
+        ...     try:
+        ...         summary = trainer.train()
+        ...     finally:
+        ...         trainer.close()
+        ...     checkpoints = sorted(os.listdir(os.path.join(folder, "checkpoints")))
+        >>> summary["frames"], summary["updates"] > 0, checkpoints
+        (64, True, ['best.pt', 'last.pt'])
+    """
+
     def __init__(self, run: RunConfig, run_dir: Path | str) -> None:
         self.run = run
         self.dir = Path(run_dir)
