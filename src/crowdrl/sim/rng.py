@@ -9,8 +9,8 @@ exact on every backend.
 
 The hash is written with Python operators only, so one implementation runs on torch tensors,
 on NumPy arrays and on Python ints alike. CPU draws run it on NumPy views of the tensors
-(NumPy's integer loops and per-call cost are lighter than ATen's here; docs/benchmarks.md), and an index given as a Python int is hashed once in Python;
-the bits are the same either way (tested).
+(NumPy's integer loops and per-call cost are lighter than ATen's here; docs/benchmarks.md), and an
+index given as a Python int is hashed once in Python; the bits are the same either way (tested).
 """
 
 from __future__ import annotations
