@@ -33,7 +33,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
 
 demo: $(STAMP)
-	$(PY) experiments/demo.py train.compile_acting=true  # the acting network compiled: speed only (docs/benchmarks.md)
+	$(PY) experiments/demo.py
 
 bench: $(STAMP)
 	$(PY) experiments/bench_env.py

@@ -75,3 +75,13 @@ def test_a_stored_config_that_predates_a_changed_default_keeps_what_it_ran_with(
     assert STORED_DEFAULTS == {"planning": {"enabled": False}, "train": {"compile_acting": False}}
     stated = OmegaConf.to_container(OmegaConf.structured(RunConfig()))  # a key it states: kept
     assert validate(stored_config(stated), resources=False).planning.enabled
+
+
+def test_the_demo_command_compiles_the_acting_network_at_the_demo_preset_only():
+    from crowdrl.cli.demo import compose_run
+
+    assert compose_run([])[1].train.compile_acting
+    assert not compose_run(["train.compile_acting=false"])[1].train.compile_acting
+    assert not compose_run(["preset=smoke"])[1].train.compile_acting
+    cfg, run = compose_run(["seed=1"])
+    assert cfg.train.compile_acting and run.planning.enabled and run.seed == 1
