@@ -74,7 +74,7 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
 
     torch.set_num_threads(1)
     run = validate({"train": {"num_envs": num_envs, "steps_per_batch": 8, "compile_acting": acting == "compiled"},
-                    "env": {"orca_backend": backend}})
+                    "env": {"orca_backend": backend}, "planning": {"enabled": False}})  # the greedy Q actor
     env = factories.make_env(run)
     policy, _ = factories.make_exploration(run, env, factories.make_actor(run, env, make_network(run, 81)))
     it = iter(factories.make_collector(run, env, policy))

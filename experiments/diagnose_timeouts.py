@@ -32,7 +32,7 @@ STILL_SPEED = 0.1  # m/s
 def load(path: Path):
     """The run config, the Q network (eval mode) and the crowd predictor of a best.pt or last.pt."""
     from crowdrl.training.checkpoint import CheckpointError, load_checkpoint
-    from crowdrl.training.config import validate
+    from crowdrl.training.config import stored_config, validate
     from crowdrl.training.loss import D3QNLoss
     from crowdrl.training.pipeline import load_trained_predictor
     from crowdrl.training.variants import make_network
@@ -40,7 +40,7 @@ def load(path: Path):
     data = load_checkpoint(path)
     if "config" not in data:
         raise CheckpointError(f"{path} holds no run config")
-    run = validate(data["config"], resources=False)
+    run = validate(stored_config(data["config"]), resources=False)  # a key it predates: what it ran with
     net = make_network(run)
     net.load_state_dict(data["net"] if "net" in data else D3QNLoss.online_state_dict(data["loss"]))
     return run, net.eval(), load_trained_predictor(run, data, path)

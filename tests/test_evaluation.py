@@ -86,11 +86,11 @@ def test_orca_baseline_is_batch_size_invariant():
 
 def test_trained_style_actor_gives_the_old_loops_numbers():
     """The run's actor (QValueActor + ε-greedy, deterministic) on the run's test env."""
-    from crowdrl.training.config import RunConfig
+    from crowdrl.training.config import PlanningConfig, RunConfig
     from crowdrl.training.factories import make_actor, make_env, make_exploration
     from crowdrl.training.variants import make_network
 
-    run = RunConfig()
+    run = RunConfig(planning=PlanningConfig(enabled=False))  # the greedy QValueActor
     torch.manual_seed(0)
     net = make_network(run)
     env = make_env(run, split="test", num_envs=20, seed=0)

@@ -44,8 +44,9 @@ CASES = {
 
 
 def make_run_folder(folder: Path, overrides: dict, seed: int = 0) -> Path:
-    """A run folder holding ``checkpoints/best.pt`` of a fresh network of ``overrides``' config."""
-    run = validate(overrides)
+    """A run folder holding ``checkpoints/best.pt`` of a fresh network of ``overrides``' config (greedy Q
+    actor unless ``overrides`` say otherwise: planning is the schema's default)."""
+    run = validate({"planning": {"enabled": False}, **overrides})
     torch.manual_seed(seed)
     config = to_dict(run)
     save_checkpoint(folder / "checkpoints" / "best.pt", {"net": make_network(run).state_dict(), "config": config,

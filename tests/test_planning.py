@@ -248,12 +248,13 @@ def test_bad_planning_values_are_refused_naming_the_key(key, value, message):
         validate({"planning": {"enabled": True, key: value}})
 
 
-def test_planning_is_off_by_default_and_leaves_the_fingerprint_of_a_run_without_it():
+def test_planning_off_leaves_the_fingerprint_of_a_run_without_it():
     from crowdrl.training.checkpoint import config_fingerprint
-    from crowdrl.training.config import to_dict
+    from crowdrl.training.config import stored_config, to_dict
 
-    run = validate({})
-    assert run.planning.enabled is False
+    assert validate({}).planning.enabled is True  # the default, as upstream (one set of defaults)
+    run = validate({"planning": {"enabled": False}})
+    assert validate(stored_config({}), resources=False).planning.enabled is False  # a stored config without the key
     cfg = to_dict(run)
     without = {k: v for k, v in cfg.items() if k != "planning"}  # a checkpoint written before the key existed
     assert config_fingerprint(cfg) == config_fingerprint(without)

@@ -129,10 +129,10 @@ def test_resume_overrides_are_compared_with_schema_defaults_for_keys_a_folder_pr
     del saved["planning"]  # a run folder written before the planning key existed
     saved = OmegaConf.create(saved)
     current = OmegaConf.structured(RunConfig(seed=1))
-    current.planning.enabled = True
+    current.planning.enabled = True  # today's default, but the old run trained without planning (STORED_DEFAULTS)
     assert resume_conflicts(current, saved, ["planning.enabled=true"]) == [
         "planning.enabled=true (the run has planning.enabled=False)"]
-    current.planning.enabled = False  # the schema's default: what the old run ran with
+    current.planning.enabled = False  # what the old run ran with
     assert resume_conflicts(current, saved, ["planning.enabled=false", "seed=1", "resume=x", "hydra.run.dir=y"]) == []
     current.seed, current.env.num_humans = 0, 5
     conflicts = resume_conflicts(current, saved, ["seed=0", "env.num_humans=5", "env=circle"])

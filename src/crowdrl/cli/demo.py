@@ -28,7 +28,9 @@ CONF_DIR = config_dir()
 
 
 def compose_run(overrides: list[str]):
-    """The validated :class:`RunConfig` for ``conf/config.yaml`` plus Hydra ``overrides``."""
+    """The validated :class:`RunConfig` for ``conf/config.yaml`` plus Hydra ``overrides``; at the ``demo``
+    preset the acting network is compiled (``train.compile_acting``, off in the schema and conf/:
+    speed only, same Q to float rounding) unless an override sets it."""
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
@@ -37,6 +39,8 @@ def compose_run(overrides: list[str]):
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
+    if cfg.preset == "demo" and not any(o.lstrip("+~").startswith("train.compile_acting=") for o in overrides):
+        cfg.train.compile_acting = True  # the demo's speed (docs/benchmarks.md), as before one set of defaults
     return cfg, validate(cfg)
 
 

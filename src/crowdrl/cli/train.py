@@ -112,7 +112,7 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
     """The run folder's own ``config.yaml`` (with ``resume`` set). Command-line overrides other than
     ``resume`` and ``hydra.*`` must agree with it; any that do not are refused, by name."""
     from crowdrl.training import ConfigError, validate
-    from crowdrl.training.config import resume_conflicts
+    from crowdrl.training.config import resume_conflicts, stored_config
 
     if not (run_dir / "checkpoints" / "last.pt").is_file():
         raise ConfigError(f"resume={run_dir}: no checkpoints/last.pt there")
@@ -123,6 +123,9 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
     if conflicts:
         raise ConfigError(f"resume={run_dir}: a resumed run keeps its own config.yaml; refused override(s): "
                           + "; ".join(conflicts))
+    # a key the folder predates whose default has changed since (planning.enabled, train.compile_acting):
+    # the value the folder ran with (STORED_DEFAULTS), so an old run without planning never resumes planning
+    saved = OmegaConf.create(stored_config(saved))
     saved.resume = str(run_dir)
     return saved, validate(saved)
 

@@ -7,6 +7,15 @@ Budgets are counted in frames (env steps of the robot). The paper counts episode
 of the trained policy lasts about 45–50 steps (11–12 s at 0.25 s), early ones fewer, so the
 paper's 10k episodes are ≈ 0.5M frames and its schedules convert at 50 frames per episode
 (ε-greedy over 4000 episodes = 200k frames, target copy every 500 episodes = 25k frames).
+
+One set of defaults: the schema's defaults are ``conf/config.yaml`` composed with no overrides
+(``preset=demo``; ``tests/test_defaults.py`` keeps the two equal), so the Python API and the CLI
+train the same algorithm: SG-D3QN with its online planner (``planning.enabled``, as upstream) at the
+demo budget. The budget keys (``train.*`` frames and ratios, ``exploration.anneal_frames``) are a
+preset's choice: ``preset=paper``/``episodes``/``smoke`` override them. ``train.compile_acting`` is
+off in both (it only buys speed; ``make demo`` and the paper/episodes presets turn it on). A stored
+config that predates a key whose default has changed keeps the value it ran with
+(:data:`STORED_DEFAULTS`, :func:`stored_config`).
 """
 
 from __future__ import annotations
@@ -73,7 +82,7 @@ class ExplorationConfig:
     name: str = "egreedy"
     eps_start: float = 0.5
     eps_end: float = 0.1
-    anneal_frames: int = 4000 * FRAMES_PER_EPISODE
+    anneal_frames: int = 100_000  # the demo's; the paper's 4000 episodes (200k) in exploration/*.yaml
     sigma0: float = 0.5  # noisy: factorised NoisyLinear σ0
     dropout_start: float = 0.5  # dropout: p decays linearly start -> end over anneal_frames
     dropout_end: float = 0.01
@@ -108,23 +117,25 @@ class LoggerConfig:
 
 @dataclass
 class TrainConfig:
-    num_envs: int = 16  # environments stepped at once by the collector
+    num_envs: int = 64  # environments stepped at once by the collector
     steps_per_batch: int = 8  # steps per environment per collected batch
-    total_frames: int = 10_000 * FRAMES_PER_EPISODE
+    total_frames: int = 200_000  # the demo's budget; the paper's 10k episodes (500k frames): preset=paper
     buffer_size: int = 100_000
     batch_size: int = 100
     n_step: int = 1
     gamma: float = 0.9 ** 0.25  # 0.974 per 0.25 s step at v_pref 1
     lr: float = 1e-3
-    updates_per_frame: float = 1.0
-    warmup_frames: int = 1_000  # collect this many frames before the first update
-    target_update_frames: int = 500 * FRAMES_PER_EPISODE
-    val_every_frames: int = 500 * FRAMES_PER_EPISODE
+    updates_per_frame: float = 0.125
+    warmup_frames: int = 2_000  # collect this many frames before the first update
+    target_update_frames: int = 10_000  # the paper's 500 episodes (25k frames): preset=paper
+    val_every_frames: int = 10_000
     val_episodes: int = 100
-    checkpoint_every_frames: int = 25_000
-    save_buffer: bool = False  # the replay buffer in last.pt: a resume is then bit-exact (~50 MB per 100k)
+    checkpoint_every_frames: int = 10_000
+    save_buffer: bool = False  # the replay buffer in last.pt: a resume is then bit-exact (its size: docs/reliability.md)
     test_episodes: int = 1000
-    compile_acting: bool = False  # the acting Q network (collection, planning, validation, test) through torch.compile; the demo and paper presets turn it on (bench_train.py --acting)
+    # the acting Q network (collection, planning, validation, test) through torch.compile; off here and
+    # in conf/ (speed only); make demo and the paper/episodes presets turn it on (bench_train.py --acting)
+    compile_acting: bool = False
     # the D3QN update (target, forwards, backward), and the planner's predictor update, each as one
     # torch.compile graph (bench_train.py --loss)
     compile_loss: bool = True
@@ -136,7 +147,7 @@ class PlanningConfig:
     ``width`` actions by Q with a ``depth``-step look-ahead through a crowd ``predictor``
     (``learned``: trained alongside Q by MSE, Adam ``lr``; ``const_vel``: no parameters)."""
 
-    enabled: bool = False
+    enabled: bool = True  # as upstream SG-D3QN; false: the plain dueling double DQN
     depth: int = 1
     width: int = 10
     predictor: str = "learned"
@@ -178,7 +189,7 @@ class RunConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     planning: PlanningConfig = field(default_factory=PlanningConfig)
-    preset: str = "paper"
+    preset: str = "demo"
     seed: int = 0
     threads: int = 1
     device: str = "cpu"
@@ -211,11 +222,37 @@ def _one_of(value: Any, key: str, allowed: tuple | list) -> None:
     _check(value in allowed, key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
 
 
+# Keys whose schema default changed after run folders were recorded, at the value those folders ran
+# with: a stored config (a run folder's config.yaml, a checkpoint's config) that lacks one ran with
+# this value, not with today's default. planning.enabled: off before planning was the default (the
+# schema's default was off until one set of defaults); train.compile_acting: off in the schema before.
+STORED_DEFAULTS = {"planning": {"enabled": False}, "train": {"compile_acting": False}}
+
+
+def stored_config(cfg: DictConfig | dict) -> dict:
+    """A stored config with :data:`STORED_DEFAULTS` filled in where it lacks them: what that run ran with.
+
+    >>> stored_config({"seed": 1})["planning"]
+    {'enabled': False}
+    >>> stored_config({"planning": {"enabled": True}})["planning"]
+    {'enabled': True}
+    """
+    out = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    for group, keys in STORED_DEFAULTS.items():
+        node = out.get(group)
+        node = dict(node) if isinstance(node, dict) else {}
+        for key, value in keys.items():
+            node.setdefault(key, value)
+        out[group] = node
+    return out
+
+
 def resume_conflicts(current: DictConfig, saved: DictConfig, overrides: list[str]) -> list[str]:
     """The command-line ``overrides`` that disagree with a run folder's ``saved`` config.
 
     ``current`` is the config Hydra composed with those overrides. A key the saved file lacks (it
-    predates the key) takes the schema's default, which is what ``validate(saved)`` runs with.
+    predates the key) takes the schema's default, which is what ``validate(saved)`` runs with, except
+    for :data:`STORED_DEFAULTS` (the value it ran with: :func:`stored_config`).
     ``resume`` and ``hydra.*`` are not compared; a config group (``env=...``) compares its content.
 
     >>> from omegaconf import OmegaConf
@@ -225,7 +262,7 @@ def resume_conflicts(current: DictConfig, saved: DictConfig, overrides: list[str
     def complete(cfg: DictConfig) -> DictConfig:  # every schema key, the file's values over the defaults
         return OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.to_container(cfg, resolve=True))
 
-    now, then = complete(current), complete(saved)
+    now, then = complete(current), complete(OmegaConf.create(stored_config(saved)))
     conflicts = []
     for item in overrides:
         key = item.split("=", 1)[0].lstrip("+~")

@@ -14,7 +14,7 @@ from filelock import FileLock, Timeout
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
-from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, validate
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, stored_config, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
@@ -163,7 +163,8 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
         raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
                               f"checkpoints/best.pt")
     try:
-        run = validate(data["config"], resources=False)  # what training needed is no concern here
+        # what training needed is no concern here; a key it predates: the value it ran with (STORED_DEFAULTS)
+        run = validate(stored_config(data["config"]), resources=False)
     except ConfigError as exc:
         raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
     if data.get("fingerprint") != config_fingerprint(to_dict(run)):

@@ -1,0 +1,87 @@
+"""One set of defaults: the typed schema (``RunConfig``) and ``conf/config.yaml`` composed with no
+overrides (``preset=demo``) train the same thing, key by key (issue 27, item 4)."""
+
+from pathlib import Path
+
+import pytest
+
+from crowdrl.training.config import RunConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in d.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _compose(*overrides: str) -> dict:
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    from crowdrl.training.config import register_resolvers
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides))
+    out = OmegaConf.to_container(cfg, resolve=False)
+    out.pop("hydra", None)  # not in the schema
+    return out
+
+
+def test_conf_composed_with_no_overrides_equals_the_schema_defaults_key_by_key():
+    from omegaconf import OmegaConf
+
+    conf = _flat(_compose())
+    schema = _flat(OmegaConf.to_container(OmegaConf.structured(RunConfig)))
+    assert sorted(conf) == sorted(schema)
+    assert {k: conf[k] for k in conf if conf[k] != schema[k]} == {}
+    # the algorithm: SG-D3QN plans, as upstream; the budget: the demo's; acting eager in both (speed only)
+    run = RunConfig()
+    assert run.preset == "demo" and run.planning.enabled and not run.train.compile_acting
+
+
+@pytest.mark.parametrize("preset", ["paper", "episodes"])
+def test_paper_presets_keep_their_budget_and_each_variants_schedule(preset):
+    anneal = {"egreedy": 200_000, "noisy": 200_000, "dropout": 350_000, "icm": 200_000, "re3": 200_000,
+              "icm_published": 200_000, "re3_published": 200_000}
+    for group, frames in anneal.items():
+        cfg = _compose(f"preset={preset}", f"exploration={group}")
+        assert cfg["preset"] == preset and cfg["exploration"]["anneal_frames"] == frames, group
+        assert cfg["train"]["total_frames"] == 500_000 and cfg["train"]["compile_acting"] is True
+        assert cfg["planning"]["enabled"] is True
+    paper = _compose("preset=paper")["train"]
+    assert (paper["num_envs"], paper["updates_per_frame"], paper["target_update_frames"],
+            paper["val_every_frames"], paper["checkpoint_every_frames"]) == (16, 1.0, 25_000, 25_000, 25_000)
+
+
+def test_a_stored_config_that_predates_a_changed_default_keeps_what_it_ran_with():
+    from omegaconf import OmegaConf
+
+    from crowdrl.training.config import STORED_DEFAULTS, stored_config, validate
+
+    saved = OmegaConf.to_container(OmegaConf.structured(RunConfig()))
+    del saved["planning"]  # written before the planning key existed: trained without planning
+    del saved["train"]["compile_acting"]
+    run = validate(stored_config(saved), resources=False)
+    assert not run.planning.enabled and not run.train.compile_acting
+    assert STORED_DEFAULTS == {"planning": {"enabled": False}, "train": {"compile_acting": False}}
+    stated = OmegaConf.to_container(OmegaConf.structured(RunConfig()))  # a key it states: kept
+    assert validate(stored_config(stated), resources=False).planning.enabled
+
+
+def test_the_demo_command_compiles_the_acting_network_at_the_demo_preset_only():
+    from crowdrl.cli.demo import compose_run
+
+    assert compose_run([])[1].train.compile_acting
+    assert not compose_run(["train.compile_acting=false"])[1].train.compile_acting
+    assert not compose_run(["preset=smoke"])[1].train.compile_acting
+    cfg, run = compose_run(["seed=1"])
+    assert cfg.train.compile_acting and run.planning.enabled and run.seed == 1
