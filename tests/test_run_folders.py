@@ -119,8 +119,8 @@ def test_a_refused_fresh_start_into_another_run_changes_nothing(finished_run, tm
 
 @pytest.mark.parametrize("kind", ["user_files", "empty"])
 def test_a_folder_not_made_by_crowdrl_is_refused_unless_empty(tmp_path, kind):
-    from crowdrl.training.pipeline import RunFolderRefused, run_training
-    from crowdrl.training.run_folder import check_run_folder
+    from crowdrl.training.pipeline import run_training
+    from crowdrl.training.run_folder import RunFolderRefused, check_run_folder
 
     folder = tmp_path / "mine"
     folder.mkdir()
