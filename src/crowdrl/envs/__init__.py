@@ -1,6 +1,6 @@
 """TorchRL and Gymnasium faces of the crowd simulator."""
 
 from crowdrl.envs.crowd_nav import CrowdNavEnv
-from crowdrl.envs.robot_centric import RobotCentric, robot_centric
+from crowdrl.envs.robot_centric import ENTITY_DIM, RobotCentric, entity_tokens, obstacles_centric, robot_centric
 
-__all__ = ["CrowdNavEnv", "RobotCentric", "robot_centric"]
+__all__ = ["ENTITY_DIM", "CrowdNavEnv", "RobotCentric", "entity_tokens", "obstacles_centric", "robot_centric"]

@@ -11,7 +11,7 @@ from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
-from crowdrl.sim.obstacles import ObstacleEdges, process_obstacles, put_edges, select_edges
+from crowdrl.sim.obstacles import ObstacleEdges, nearest_edges, process_obstacles, put_edges, select_edges
 from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
 
@@ -32,7 +32,12 @@ class CrowdNavEnv(EnvBase):
     function of its id); absent humans are zero rows, masked, and take no part in anything. Per-step info:
     ``"min_separation"``, ``"discomfort_count"``, ``"event"`` (0 running, 1 success,
     2 collision, 3 timeout), ``"episode_id"`` and ``"human_goals"`` ``[B, N, 2]`` (for
-    recording trajectories; no policy of crowdrl reads it). Actions are indices into the 81-action
+    recording trajectories; no policy of crowdrl reads it). In the obstacle scenarios (corridor,
+    doorway, room) the observation adds the ``K = config.num_obstacle_tokens`` obstacle edges
+    nearest to the robot, ``"obstacles"`` ``[B, K, 4]`` = (ax, ay, bx, by), nearest first, with
+    ``"obstacles_mask"`` ``[B, K]`` (False: padding), and the episode's whole map,
+    ``"obstacle_polygons"`` ``[B, P, V, 2]`` with ``"obstacle_polygons_mask"`` ``[B, P, V]`` (the
+    RVO2 polygons of :class:`~crowdrl.sim.state.CrowdState`; the ORCA baseline reads them). Actions are indices into the 81-action
     unicycle table, or, with ``robot_kinematics="holonomic"``, velocities ``[B, 2]`` clipped to
     ``v_pref`` (:func:`crowdrl.sim.kinematics.decode_action`). Collision and goal terminate;
     the time limit truncates.
@@ -221,6 +226,14 @@ class CrowdNavEnv(EnvBase):
             shape=(B,),
             device=dev,
         )
+        (P, V), K = self.config.obstacles_shape, self.config.num_obstacle_tokens
+        if P > 0:
+            self.observation_spec.update(dict(
+                obstacles=Unbounded((B, K, 4), dtype=self.dtype, device=dev),
+                obstacles_mask=Categorical(2, (B, K), dtype=torch.bool, device=dev),
+                obstacle_polygons=Unbounded((B, P, V, 2), dtype=self.dtype, device=dev),
+                obstacle_polygons_mask=Categorical(2, (B, P, V), dtype=torch.bool, device=dev),
+            ))
         if self.config.robot_kinematics == "unicycle":
             self.action_spec = Categorical(NUM_ACTIONS, shape=(B,), dtype=torch.int64, device=dev)
         else:  # holonomic: a velocity, clipped to v_pref by the env (the box bounds each component)
@@ -250,7 +263,7 @@ class CrowdNavEnv(EnvBase):
 
     def _observation(self, state: CrowdState, min_sep, discomfort, event, episode_id) -> TensorDict:
         robot, humans = observe(self.config, state)
-        return TensorDict(
+        out = TensorDict(
             {
                 "robot": robot,
                 "humans": humans,
@@ -266,6 +279,13 @@ class CrowdNavEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+        if state.has_obstacles:
+            edges, edges_mask = nearest_edges(state.robot_position, state.obstacles, state.obstacle_mask,
+                                              self.config.num_obstacle_tokens)
+            out.update({"obstacles": edges, "obstacles_mask": edges_mask,
+                        "obstacle_polygons": state.obstacles.clone(),
+                        "obstacle_polygons_mask": state.obstacle_mask.clone()})
+        return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B = self.num_envs

@@ -17,6 +17,11 @@ one step ahead).
   humans moving from their positions to the predicted ones (velocity = displacement / Δt, or
   their current velocity when the simulator judges collisions with it,
   ``collision_velocity="start"``).
+* Obstacles: where the observation has them (``"obstacles"``, the edges nearest to the robot),
+  the look-ahead's collision check sweeps the robot's disc against those edges as the simulator
+  does (they stay the observed ones over the look-ahead); a network trained among obstacles
+  (``entities=True``) reads them as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`)
+  in every predicted state.
 * A predicted collision or goal ends the look-ahead (``end̂``): such a step is scored by its
   reward and ``Q(s, a)`` only, as a terminal transition has no successor value in the TD target.
 
@@ -35,7 +40,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor, nn
 
-from crowdrl.envs.robot_centric import robot_centric
+from crowdrl.envs.robot_centric import entity_tokens, obstacles_centric, robot_centric
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import step_reward
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
@@ -61,6 +66,10 @@ class OnlinePlanner(TensorDictModuleBase):
         depth, width: look-ahead depth ``>= 1`` and candidates per state ``1..A``.
         robot_key, humans_key: the world-frame observation keys; ``mask_key``: the crowd mask,
             read when the tensordict has it (``None``: never).
+        entities: ``net`` reads entity tokens (humans and obstacle edges,
+            ``net(robot_rc, entities_rc, entities_mask)``), as networks trained among obstacles do.
+        obstacles_key: the observed obstacle edges ``[*, K, 4]`` (with ``obstacles_key + "_mask"``),
+            read when the tensordict has them.
 
     Writes ``"action"`` ``[*]``, ``"action_value"`` ``[*, A]`` (Q(s, ·)) and
     ``"chosen_action_value"`` ``[*, 1]`` (Q of the chosen action), as ``QValueActor`` does.
@@ -90,7 +99,8 @@ class OnlinePlanner(TensorDictModuleBase):
 
     def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,
                  depth: int = 1, width: int = 10, robot_key: str = "robot", humans_key: str = "humans",
-                 mask_key: str | None = "humans_mask") -> None:
+                 mask_key: str | None = "humans_mask", entities: bool = False,
+                 obstacles_key: str = "obstacles") -> None:
         super().__init__()
         if config.robot_kinematics != "unicycle":
             raise ValueError(f"planning needs the unicycle's discrete actions, got {config.robot_kinematics!r}")
@@ -106,20 +116,26 @@ class OnlinePlanner(TensorDictModuleBase):
         self.gamma = float(gamma)
         self.depth, self.width = int(depth), int(width)
         self.robot_key, self.humans_key, self.mask_key = robot_key, humans_key, mask_key
+        self.entities, self.obstacles_key = bool(entities), obstacles_key
         self.in_keys = [robot_key, humans_key] + ([mask_key] if mask_key is not None else [])
         self.out_keys = ["action", "action_value", "chosen_action_value"]
         self.register_buffer("table", action_table(config.robot_v_pref), persistent=False)
 
     # ------------------------------------------------------------------ the look-ahead
-    def q_values(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None) -> Tensor:
-        """``Q(s, ·)`` ``[M, A]`` of world-frame states ``robot [M, 9]``, ``humans [M, N, 5]``."""
+    def q_values(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None,
+                 obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Tensor:
+        """``Q(s, ·)`` ``[M, A]`` of world-frame states ``robot [M, 9]``, ``humans [M, N, 5]`` (and the
+        observed obstacle edges ``[M, K, 4]``, read by an ``entities`` network)."""
         robot_rc, humans_rc = robot_centric(robot, humans)
+        if self.entities:
+            obstacles_rc = None if obstacles is None else obstacles_centric(robot, obstacles)
+            return self.net(robot_rc, *entity_tokens(robot_rc, humans_rc, obstacles_rc, humans_mask, obstacles_mask))
         if humans_mask is None:
             return self.net(robot_rc, humans_rc)
         return self.net(robot_rc, humans_rc, humans_mask)
 
-    def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int
-               ) -> tuple[Tensor, Tensor]:
+    def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int,
+               obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(score_depth [M, w], candidates [M, w])`` for states ``[M]`` whose ``Q(s, ·)`` is ``q``."""
         cfg, dt = self.config, self.config.time_step
         M, N = humans.shape[0], humans.shape[1]
@@ -138,38 +154,57 @@ class OnlinePlanner(TensorDictModuleBase):
         else:
             human_velocity = (humans_next[..., 0:2] - humans[..., 0:2]) / dt
         mask_w = None if humans_mask is None else humans_mask[:, None].expand(M, w, N)
+        walls = wall_mask = None
+        if obstacles is not None:  # the observed edges as wall polygons [M, K, 2, 2], for the sweep
+            K = obstacles.shape[1]
+            walls = obstacles.reshape(M, K, 2, 2)
+            wall_mask = (torch.ones(M, K, dtype=torch.bool, device=robot.device) if obstacles_mask is None
+                         else obstacles_mask)[..., None].expand(M, K, 2)
         judged = step_reward(cfg, position, velocity, robot[:, None, 5:7].expand(M, w, 2),
                              humans[:, None, :, 0:2].expand(M, w, N, 2), human_velocity[:, None].expand(M, w, N, 2),
-                             mask_w)
+                             mask_w, walls, wall_mask)
         # the value after the step: V_0 = max Q, V_k = the best score of the next level
         flat_robot = robot_next.reshape(M * w, -1)
         flat_humans = humans_next[:, None].expand(M, w, N, humans.shape[-1]).reshape(M * w, N, -1)
         flat_mask = None if mask_w is None else mask_w.reshape(M * w, N)
-        q_next = self.q_values(flat_robot, flat_humans, flat_mask)
+        flat_obstacles = flat_obstacles_mask = None
+        if obstacles is not None:
+            flat_obstacles = obstacles[:, None].expand(M, w, *obstacles.shape[1:]).reshape(M * w, *obstacles.shape[1:])
+            if obstacles_mask is not None:
+                flat_obstacles_mask = obstacles_mask[:, None].expand(M, w, -1).reshape(M * w, -1)
+        q_next = self.q_values(flat_robot, flat_humans, flat_mask, flat_obstacles, flat_obstacles_mask)
         if depth == 1:
             value = q_next.amax(-1)
         else:
-            value = self.scores(flat_robot, flat_humans, flat_mask, q_next, depth - 1)[0].amax(-1)
+            value = self.scores(flat_robot, flat_humans, flat_mask, q_next, depth - 1, flat_obstacles,
+                                flat_obstacles_mask)[0].amax(-1)
         ended = judged.collided | judged.reached
         value = torch.where(ended, 0.0, value.reshape(M, w))
         return 0.5 * (judged.reward + self.gamma * value + q_top), cand
 
     @torch.no_grad()
-    def plan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None) -> Plan:
-        """The planner's decision for world-frame states ``robot [*, 9]``, ``humans [*, N, 5]``."""
+    def plan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None,
+             obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Plan:
+        """The planner's decision for world-frame states ``robot [*, 9]``, ``humans [*, N, 5]`` (and
+        the observed obstacle edges ``[*, K, 4]`` with their mask ``[*, K]``, optional)."""
         lead, N = robot.shape[:-1], humans.shape[-2]
         robot, humans = robot.reshape(-1, robot.shape[-1]), humans.reshape(-1, N, humans.shape[-1])
         if humans_mask is not None:
             humans_mask = humans_mask.reshape(-1, N)
-        q = self.q_values(robot, humans, humans_mask)
-        scores, cand = self.scores(robot, humans, humans_mask, q, self.depth)
+        if obstacles is not None:
+            obstacles = obstacles.reshape(robot.shape[0], -1, 4)
+            if obstacles_mask is not None:
+                obstacles_mask = obstacles_mask.reshape(robot.shape[0], -1)
+        q = self.q_values(robot, humans, humans_mask, obstacles, obstacles_mask)
+        scores, cand = self.scores(robot, humans, humans_mask, q, self.depth, obstacles, obstacles_mask)
         action = cand.gather(-1, scores.argmax(-1, keepdim=True)).squeeze(-1)
         return Plan(action.reshape(lead), q.reshape(*lead, -1), cand.reshape(*lead, self.width),
                     scores.reshape(*lead, self.width))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         mask = tensordict.get(self.mask_key, None) if self.mask_key is not None else None
-        plan = self.plan(tensordict.get(self.robot_key), tensordict.get(self.humans_key), mask)
+        plan = self.plan(tensordict.get(self.robot_key), tensordict.get(self.humans_key), mask,
+                         tensordict.get(self.obstacles_key, None), tensordict.get(self.obstacles_key + "_mask", None))
         tensordict.set("action", plan.action)
         tensordict.set("action_value", plan.action_value)
         tensordict.set("chosen_action_value", plan.action_value.gather(-1, plan.action.unsqueeze(-1)))

@@ -12,7 +12,7 @@ OPEN_SCENARIOS = ("circle", "square")  # no obstacles: the paper's scenarios
 OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdrl.sim.scenarios)
 # CrowdConfig's obstacle geometry keys (the Hydra env group's keys of the same names)
 OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
-                 "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst")
+                 "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
@@ -64,6 +64,9 @@ class CrowdConfig:
     # ORCA time horizon of the humans towards obstacles (RVO2's timeHorizonObst): CrowdNav's ORCA
     # policy and RVO2's examples use 5 s, as for other agents.
     orca_time_horizon_obst: float = 5.0
+    # The robot observes the obstacle edges nearest to it: at most this many (``"obstacles"``
+    # ``[B, K, 4]``, K = min(obstacle_tokens, the scenario's edge count); crowdrl.envs.CrowdNavEnv).
+    obstacle_tokens: int = 8
     # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
     # clipped to robot_v_pref; the ORCA robot baseline acts this way).
     robot_kinematics: str = "unicycle"
@@ -112,6 +115,9 @@ class CrowdConfig:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if isinstance(self.room_pillars, bool) or int(self.room_pillars) != self.room_pillars or self.room_pillars < 0:
             raise ValueError(f"room_pillars must be an integer >= 0, got {self.room_pillars!r}")
+        if isinstance(self.obstacle_tokens, bool) or int(self.obstacle_tokens) != self.obstacle_tokens \
+                or self.obstacle_tokens < 1:
+            raise ValueError(f"obstacle_tokens must be an integer >= 1, got {self.obstacle_tokens!r}")
         if self.room_pillar_min > self.room_pillar_max:
             raise ValueError(f"room_pillar_min ({self.room_pillar_min}) must be <= room_pillar_max "
                              f"({self.room_pillar_max})")
@@ -141,6 +147,17 @@ class CrowdConfig:
         if self.scenario == "room":
             return self.room_pillars, 4
         return 0, 2
+
+    @property
+    def num_obstacle_edges(self) -> int:
+        """The edges of every episode's obstacles: a wall has one, a solid polygon one per vertex."""
+        P, V = self.obstacles_shape
+        return P * (1 if V == 2 else V)
+
+    @property
+    def num_obstacle_tokens(self) -> int:
+        """``K``: the obstacle edges the robot observes (0 in the open scenarios)."""
+        return min(self.obstacle_tokens, self.num_obstacle_edges)
 
     @property
     def obstacle_clearance_margin(self) -> float:

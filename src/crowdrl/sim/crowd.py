@@ -146,10 +146,15 @@ def obstacle_hit(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tenso
                  obstacle_mask: Tensor) -> Tensor:
     """Continuous collision of the robot with obstacle edges over a step, ``[B]`` bool: the disc of
     ``cfg.robot_radius`` swept along ``p -> p + v * dt`` touches an edge (strictly closer than the
-    radius, as with humans), so a fast robot cannot tunnel through a wall between two positions."""
-    p0 = robot_position.unsqueeze(1)
-    p1 = p0 + robot_velocity.unsqueeze(1) * cfg.time_step
-    return path_obstacle_distance(p0, p1, obstacles, obstacle_mask).squeeze(1) < cfg.robot_radius
+    radius, as with humans), so a fast robot cannot tunnel through a wall between two positions.
+
+    ``robot_position``/``robot_velocity`` are ``[B, 2]``, or ``[B, M, 2]`` for ``M`` candidate steps
+    per episode (a planner's; the result is then ``[B, M]``)."""
+    single = robot_position.dim() == 2
+    p0 = robot_position.unsqueeze(1) if single else robot_position
+    p1 = p0 + (robot_velocity.unsqueeze(1) if single else robot_velocity) * cfg.time_step
+    hit = path_obstacle_distance(p0, p1, obstacles, obstacle_mask) < cfg.robot_radius
+    return hit.squeeze(1) if single else hit
 
 
 def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor, robot_goal: Tensor,
@@ -161,7 +166,7 @@ def step_reward(cfg: CrowdConfig, robot_position: Tensor, robot_velocity: Tensor
     Positions are at the start of the step; velocities hold over it (``dt = cfg.time_step``).
     Shapes: robot ``[..., 2]``, humans ``[..., N, 2]``, ``human_mask [..., N]`` bool (``True`` =
     present; absent humans neither collide, nor cause discomfort, nor enter the reward).
-    ``obstacles [B, P, V, 2]`` with ``obstacle_mask [B, P, V]`` (robot ``[B, 2]``): touching an
+    ``obstacles [B, P, V, 2]`` with ``obstacle_mask [B, P, V]`` (robot ``[B, 2]`` or ``[B, M, 2]``): touching an
     obstacle edge during the step (:func:`obstacle_hit`) is a collision, with the same penalty.
     """
     dt = cfg.time_step

@@ -445,3 +445,32 @@ def path_obstacle_distance(start: Tensor, end: Tensor, obstacles: Tensor | None,
     p1x, p1y = end.unsqueeze(-1).unbind(-2)
     d = _segment_distance_xy(p0x, p0y, p1x, p1y, seg.ax, seg.ay, seg.bx, seg.by)
     return d.masked_fill_(~seg.valid, float("inf")).amin(-1)
+
+
+def nearest_edges(points: Tensor, obstacles: Tensor, obstacle_mask: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The ``k`` obstacle edges nearest to ``points [B, 2]``, nearest first: their endpoints
+    ``[B, k, 4]`` = (ax, ay, bx, by) and a mask ``[B, k]`` (False: fewer than ``k`` edges; the row is
+    zeros). Ties go to the lower edge index (:func:`obstacle_segments`' order), so the result is a
+    pure function of the state.
+
+    >>> wall = torch.tensor([[[[-1.0, 1.0], [1.0, 1.0]], [[-1.0, 3.0], [1.0, 3.0]]]])
+    >>> edges, mask = nearest_edges(torch.zeros(1, 2), wall, torch.ones(1, 2, 2, dtype=torch.bool), 1)
+    >>> edges.tolist(), mask.tolist()
+    ([[[-1.0, 1.0, 1.0, 1.0]]], [[True]])
+    """
+    a, b, valid = obstacle_segments(obstacles, obstacle_mask)  # [B, S, 2], [B, S]
+    if isinstance(k, bool) or int(k) != k or k < 0:
+        raise ValueError(f"k must be an integer >= 0, got {k!r}")
+    S = a.shape[1]
+    px, py = points[:, None, 0], points[:, None, 1]
+    d = _point_segment_sq(px, py, a[..., 0], a[..., 1], b[..., 0], b[..., 1]).masked_fill(~valid, float("inf"))
+    # a stable sort: equal distances keep the edges' order (topk's order among ties is unspecified)
+    order = torch.sort(d, dim=-1, stable=True).indices[:, :min(k, S)]
+    edges = torch.cat((a, b), -1).gather(1, order.unsqueeze(-1).expand(-1, -1, 4))
+    mask = valid.gather(1, order)
+    edges = torch.where(mask.unsqueeze(-1), edges, 0.0)
+    if order.shape[1] < k:  # fewer edges than tokens: padded rows
+        pad = k - order.shape[1]
+        edges = torch.cat((edges, edges.new_zeros(edges.shape[0], pad, 4)), 1)
+        mask = torch.cat((mask, mask.new_zeros(mask.shape[0], pad)), 1)
+    return edges, mask

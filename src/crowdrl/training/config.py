@@ -32,7 +32,7 @@ from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.sim.kinematics import NUM_ACTIONS
-from crowdrl.sim.config import MAX_HUMANS, OBSTACLE_KEYS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
+from crowdrl.sim.config import MAX_HUMANS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
@@ -66,6 +66,7 @@ class EnvConfig:
     room_pillar_min: float = CrowdConfig.room_pillar_min
     room_pillar_max: float = CrowdConfig.room_pillar_max
     orca_time_horizon_obst: float = CrowdConfig.orca_time_horizon_obst
+    obstacle_tokens: int = CrowdConfig.obstacle_tokens  # the nearest obstacle edges the robot observes
 
 
 @dataclass
@@ -227,6 +228,13 @@ def _one_of(value: Any, key: str, allowed: tuple | list) -> None:
 # this value, not with today's default. planning.enabled: off before planning was the default (the
 # schema's default was off until one set of defaults); train.compile_acting: off in the schema before.
 STORED_DEFAULTS = {"planning": {"enabled": False}, "train": {"compile_acting": False}}
+
+
+def sees_obstacles(run: RunConfig) -> bool:
+    """Whether the run's networks read obstacles: trained in an obstacle scenario, they take the humans
+    and the observed obstacle edges as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`),
+    wherever they are evaluated."""
+    return run.env.scenario in OBSTACLE_SCENARIOS
 
 
 def stored_config(cfg: DictConfig | dict) -> dict:

@@ -25,22 +25,30 @@ from crowdrl.models.lazy_compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
 from crowdrl.sim.config import OBSTACLE_KEYS, CrowdConfig
-from crowdrl.training.config import RunConfig, crowd_range
+from crowdrl.training.config import RunConfig, crowd_range, sees_obstacles
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, uses_one_step_successor
 
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
+# what a network trained among obstacles reads: the humans and the observed obstacle edges as tokens
+ENTITY_OBS_KEYS = ("robot_rc", *RobotCentric.ENTITY_KEYS)
 # what the learned crowd predictor trains on: world-frame states and the real next human states (one
 # step later: the n-step transform moves only the observation keys), plus the humans' mask where the
 # crowd size varies (``obs_keys``), as the planner reads it when acting
 PREDICTOR_KEYS = ["robot", "humans", ("next", "humans")]
 
 
-def obs_keys(cfg: CrowdConfig) -> tuple[str, ...]:
+def obs_keys(cfg: CrowdConfig, obstacles: bool | None = None) -> tuple[str, ...]:
     """What the networks read from an env of ``cfg``: the robot-centric states, and the humans' mask
-    when the crowd size varies (a fixed crowd has every human present)."""
+    when the crowd size varies (a fixed crowd has every human present); with ``obstacles`` (default:
+    whether ``cfg`` has them; a run's networks: :func:`~crowdrl.training.config.sees_obstacles`) the
+    entity tokens of humans and obstacle edges, with their mask, in place of the humans."""
+    if obstacles is None:
+        obstacles = cfg.obstacles_shape[0] > 0
+    if obstacles:
+        return ENTITY_OBS_KEYS
     return (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
 
 
@@ -78,7 +86,7 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
     cfg = crowd_config(run, scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
     base = CrowdNavEnv(cfg.scenario, num_envs=num_envs or run.train.num_envs, num_humans=cfg.num_humans,
                        config=cfg, seed=run.seed if seed is None else seed, split=split, device=run.device)
-    return TransformedEnv(base, Compose(RobotCentric()))
+    return TransformedEnv(base, Compose(RobotCentric(entities=sees_obstacles(run))))
 
 
 def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
@@ -95,12 +103,12 @@ def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
         if predictor is not None:
             predictor = CompiledModule(predictor, what="the planner's crowd predictor")
     if not run.planning.enabled:
-        return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd), net=net)
+        return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd, sees_obstacles(run)), net=net)
     if predictor is None:
         raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
     p = run.planning
     return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width,
-                         mask_key=MASK_KEY if crowd.variable_crowd else None)
+                         mask_key=MASK_KEY if crowd.variable_crowd else None, entities=sees_obstacles(run))
 
 
 def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | None:
@@ -163,6 +171,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "crowd_config", "make_actor", "make_buffer",
+__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "crowd_config", "make_actor", "make_buffer",
            "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer", "make_predictor_of",
            "obs_keys", "stored_keys"]

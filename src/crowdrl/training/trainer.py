@@ -27,7 +27,7 @@ from crowdrl.exploration.schedule import linear_schedule
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
-from crowdrl.training.config import RunConfig, to_dict
+from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
 from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
                                         make_optimizer, make_predictor_of, obs_keys, stored_keys)
 from crowdrl.training.predictor_loss import PredictorLoss
@@ -102,7 +102,8 @@ class Trainer:
         self.env = make_env(run, split="train")
         self.val_env = make_env(run, split="val", num_envs=t.val_episodes)  # same maker, held-out stream
         self.crowd_cfg = self.env.base_env.config
-        self.obs_keys = obs_keys(self.crowd_cfg)  # + the humans' mask when the crowd size varies
+        # + the humans' mask when the crowd size varies; entity tokens among obstacles
+        self.obs_keys = obs_keys(self.crowd_cfg, sees_obstacles(run))
         self.stored_keys = stored_keys(run, self.obs_keys)
         self.net = make_network(run, int(self.env.action_spec.n)).to(run.device)
         # online planning: the crowd predictor (seeded apart from the global RNG) and its own Adam

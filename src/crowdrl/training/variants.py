@@ -25,14 +25,21 @@ from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.exploration.noisy import noisify_head
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
-from crowdrl.training.config import INTRINSIC, RunConfig, beta_schedule_of
+from crowdrl.envs.robot_centric import ENTITY_DIM
+from crowdrl.training.config import INTRINSIC, RunConfig, beta_schedule_of, sees_obstacles
 
 ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
 
 
+def encoder_kwargs(run: RunConfig) -> dict:
+    """The encoder's arguments for ``run``: entity tokens (humans and obstacle edges) in place of
+    humans for a run trained among obstacles (:func:`~crowdrl.training.config.sees_obstacles`)."""
+    return {"human_dim": ENTITY_DIM} if sees_obstacles(run) else {}
+
+
 def make_network(run: RunConfig, num_actions: int = 81) -> CrowdQNetwork:
     """The Q network of the run's encoder and exploration variant (fresh parameters)."""
-    net = make_q_network(run.encoder.name, num_actions=num_actions)
+    net = make_q_network(run.encoder.name, num_actions=num_actions, **encoder_kwargs(run))
     x = run.exploration
     if x.name == "noisy":
         noisify_head(net.head, x.sigma0)
@@ -52,7 +59,7 @@ def make_bonus(run: RunConfig, obs_keys: list[str], num_actions: int = 81) -> In
         return None
     seed = 1_000_003 * (run.seed + 1)
     with seeded_init(seed):
-        encoder = make_encoder(run.encoder.name)
+        encoder = make_encoder(run.encoder.name, **encoder_kwargs(run))
     if x.name == "icm":
         return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, detach_target=x.icm_detach_target,
                    feature_norm=x.icm_feature_norm, seed=seed + 1)
@@ -80,4 +87,4 @@ def uses_one_step_successor(run: RunConfig) -> bool:
     return run.exploration.name in INTRINSIC and run.train.n_step > 1
 
 
-__all__ = ["make_network", "make_bonus", "make_intrinsic_transform", "uses_one_step_successor", "ONE_STEP_KEY"]
+__all__ = ["encoder_kwargs", "make_network", "make_bonus", "make_intrinsic_transform", "uses_one_step_successor", "ONE_STEP_KEY"]
