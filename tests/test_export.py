@@ -19,10 +19,10 @@ onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
 from crowdrl.envs.robot_centric import robot_centric  # noqa: E402
-from crowdrl.export import INPUTS, export_onnx  # noqa: E402
+from crowdrl.export import ENTITY_INPUTS, INPUTS, export_onnx  # noqa: E402
 from crowdrl.sim.kinematics import action_table  # noqa: E402
 from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
-from crowdrl.training.config import to_dict, validate  # noqa: E402
+from crowdrl.training.config import sees_obstacles, to_dict, validate  # noqa: E402
 from crowdrl.training.factories import make_actor, make_env  # noqa: E402
 from crowdrl.training.pipeline import TEST_SEED  # noqa: E402
 from crowdrl.training.variants import make_network  # noqa: E402
@@ -40,6 +40,9 @@ CASES = {
     "mp_rgl": {"encoder": {"name": "mp_rgl"}, "env": {"num_humans": 5}},
     "lstm_rl-variable": {"encoder": {"name": "lstm_rl"}, "env": {"num_humans": 6, "min_humans": 2}},
     "noisy": {"exploration": {"name": "noisy"}, "env": {"num_humans": 5}},
+    # trained among obstacles: entity tokens (humans, then the observed edges)
+    "sgd3qn-room": {"env": {"scenario": "room", "num_humans": 5}},
+    "lstm_rl-doorway": {"encoder": {"name": "lstm_rl"}, "env": {"scenario": "doorway", "num_humans": 4}},
 }
 
 
@@ -85,7 +88,8 @@ def test_the_exported_model_acts_as_the_library_actor_on_test_cases(tmp_path, ca
         td = env.rollout(10, actor, break_when_any_done=False).reshape(-1)
     assert td.shape == (1000,)
     session = onnxruntime.InferenceSession(str(info.path), providers=["CPUExecutionProvider"])
-    q, action, command = session.run(None, {k: td.get(k).numpy() for k in INPUTS})
+    inputs = ENTITY_INPUTS if sees_obstacles(run) else INPUTS
+    q, action, command = session.run(None, {k: td.get(k).numpy() for k in inputs})
     lib_q, lib_action = td.get("action_value").numpy(), td.get("action").numpy()
     np.testing.assert_allclose(q, lib_q, atol=1e-4, rtol=0)
     differ = np.flatnonzero(action != lib_action)
@@ -94,8 +98,11 @@ def test_the_exported_model_acts_as_the_library_actor_on_test_cases(tmp_path, ca
     assert (gaps < 1e-5).all(), f"{len(differ)} greedy actions differ, not on ties: Q gaps {gaps[:5]}"
     assert len(differ) <= 2, f"{len(differ)} greedy actions differ (near-ties)"
     np.testing.assert_array_equal(command, action_table(1.0).numpy()[action])
-    humans = session.get_inputs()[1].shape[1]
-    assert humans == (run.env.num_humans if case.startswith("lstm_rl") else "humans")
+    rows = session.get_inputs()[1].shape[1]
+    if sees_obstacles(run):
+        assert session.get_inputs()[1].shape[2] == 10 and "entities_rc [B,N+K,10]" in info.metadata["crowdrl.inputs"]
+    fixed = run.env.num_humans + (env.base_env.config.num_obstacle_tokens if sees_obstacles(run) else 0)
+    assert rows == (fixed if case.startswith("lstm_rl") else "entities" if sees_obstacles(run) else "humans")
 
 
 def test_the_example_transform_equals_the_librarys():

@@ -9,7 +9,11 @@ The model takes the observation as the Q actor reads it, in the robot's goal-ali
 * ``humans_mask`` ``[B, N]`` bool: True where a row is a human present (absent rows are ignored:
   the networks are padding-invariant, so ``N`` slots may hold fewer people).
 
-and returns ``q_values`` ``[B, 81]``, the greedy ``action`` ``[B]`` (int64, the first of tied
+A checkpoint trained among obstacles (corridor, doorway, room) takes the entity tokens of
+:func:`crowdrl.envs.robot_centric.entity_tokens` instead of the humans: ``entities_rc``
+``[B, N+K, 10]`` (the humans, then the observed obstacle edges) and ``entities_mask`` ``[B, N+K]``.
+
+It returns ``q_values`` ``[B, 81]``, the greedy ``action`` ``[B]`` (int64, the first of tied
 maxima, as ``torch.argmax``) and its ``command`` ``[B, 2]``: the row of the unicycle action table
 (:func:`crowdrl.sim.kinematics.action_table`), ``(speed m/s, rotation rad)``: turn by the
 rotation, then move straight at the speed for one time step. ``N`` is free for every encoder
@@ -35,11 +39,13 @@ from torch import Tensor, nn
 from crowdrl.files import atomic_write_bytes
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
 from crowdrl.training.checkpoint import config_fingerprint
-from crowdrl.training.config import to_dict
+from crowdrl.envs.robot_centric import ENTITY_DIM
+from crowdrl.training.config import sees_obstacles, to_dict
 from crowdrl.training.factories import crowd_config
 from crowdrl.training.pipeline import checkpoint_path, load_trained_network
 
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
+ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles
 OUTPUTS = ("q_values", "action", "command")
 FORMATS = ("onnx",)
 DEFAULT_OPSET = 17
@@ -116,11 +122,14 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     low, high = crowd.min_humans or crowd.num_humans, crowd.num_humans
     policy = GreedyQPolicy(net, action_table(crowd.robot_v_pref)).eval()
     fixed_crowd = run.encoder.name in FIXED_CROWD_ENCODERS
-    example = _random_observations(2, high, seed=0)
-    axes = {"robot_rc": {0: "batch"}, "humans_rc": {0: "batch"}, "humans_mask": {0: "batch"},
+    entities = sees_obstacles(run)
+    inputs, width = (ENTITY_INPUTS, ENTITY_DIM) if entities else (INPUTS, 5)
+    rows = high + crowd.num_obstacle_tokens if entities else high  # the slots an unrolled LSTM-RL takes
+    example = _random_observations(2, rows, seed=0, width=width)
+    axes = {inputs[0]: {0: "batch"}, inputs[1]: {0: "batch"}, inputs[2]: {0: "batch"},
             "q_values": {0: "batch"}, "action": {0: "batch"}, "command": {0: "batch"}}
     if not fixed_crowd:
-        axes["humans_rc"][1] = axes["humans_mask"][1] = "humans"
+        axes[inputs[1]][1] = axes[inputs[2]][1] = "entities" if entities else "humans"
     buf = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
         # the shape checks of the encoders hold for every input the axes allow; the exporter's
@@ -128,7 +137,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx")
-        torch.onnx.export(policy, example, buf, input_names=list(INPUTS), output_names=list(OUTPUTS),
+        torch.onnx.export(policy, example, buf, input_names=list(inputs), output_names=list(OUTPUTS),
                           dynamic_axes=axes, opset_version=opset, dynamo=False)
     model = onnx.load_from_string(buf.getvalue())
 
@@ -142,11 +151,18 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         notes.append(f"planning is not exported: {ckpt} was trained with planning.enabled=true; {path} holds "
                      f"its greedy Q policy without the online planner")
     if fixed_crowd:
-        notes.append(f"{run.encoder.name}: the model takes exactly N={high} human rows (pad with humans_mask=false)")
+        notes.append(f"{run.encoder.name}: the model takes exactly {rows} {inputs[1]} rows "
+                     f"(pad with {inputs[2]}=false)")
+    described = ("humans_rc [B,N,5] float32 (px, py, vx, vy, radius + robot radius), humans_mask [B,N] bool "
+                 "(True: present)")
+    if entities:
+        described = (f"entities_rc [B,N+K,10] float32: N humans (px, py, vx, vy, radius + robot radius, 0, 0, 0, 0, 0) "
+                     f"then K obstacle edges (cx, cy, 0, 0, robot radius, ax, ay, bx, by, 1: c the edge's point "
+                     f"nearest to the robot, a and b its ends; trained with K={crowd.num_obstacle_tokens}, the "
+                     f"nearest first), entities_mask [B,N+K] bool (True: present)")
     metadata = {
         "crowdrl.inputs": "robot_rc [B,9] float32 (0, 0, vx, vy, radius, goal distance, 0, v_pref, heading), "
-                          "humans_rc [B,N,5] float32 (px, py, vx, vy, radius + robot radius), humans_mask [B,N] bool "
-                          "(True: present); all in the robot's frame: origin at the robot, x towards the goal",
+                          f"{described}; all in the robot's frame: origin at the robot, x towards the goal",
         "crowdrl.outputs": "q_values [B,81] float32, action [B] int64 (greedy, first of ties), "
                            "command [B,2] float32 (speed m/s, rotation rad)",
         "crowdrl.command": f"unicycle: turn by rotation, then move straight at speed for one time step of "
@@ -168,7 +184,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     model.producer_name, model.doc_string = "crowdrl", "greedy Q policy of a crowdrl checkpoint (docs/export.md)"
     onnx.checker.check_model(model)
     payload = model.SerializeToString()
-    max_err = _check_against_torch(payload, policy, high, fixed_crowd) if check else None
+    max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width) if check else None
     try:
         atomic_write_bytes(path, payload)
     except OSError as exc:
@@ -176,8 +192,9 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     return ExportInfo(path, metadata, planning_dropped=run.planning.enabled, notes=notes, max_q_error=max_err)
 
 
-def _random_observations(batch: int, humans: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Plausible robot-frame observations (positions within a few metres, speeds about 1 m/s)."""
+def _random_observations(batch: int, humans: int, seed: int, width: int = 5) -> tuple[Tensor, Tensor, Tensor]:
+    """Plausible robot-frame observations (positions within a few metres, speeds about 1 m/s); with
+    ``width`` 10, entity tokens (random edge columns)."""
     g = torch.Generator().manual_seed(seed)
     robot = torch.zeros(batch, 9)
     robot[:, 2:4] = torch.randn(batch, 2, generator=g) * 0.5
@@ -187,12 +204,15 @@ def _random_observations(batch: int, humans: int, seed: int) -> tuple[Tensor, Te
     robot[:, 8] = (torch.rand(batch, generator=g) * 2 - 1) * torch.pi
     crowd = torch.cat((torch.randn(batch, humans, 2, generator=g) * 3, torch.randn(batch, humans, 2, generator=g) * 0.5,
                        torch.full((batch, humans, 1), 0.6)), dim=-1)
+    if width > 5:
+        crowd = torch.cat((crowd, torch.randn(batch, humans, width - 5, generator=g)), dim=-1)
     mask = torch.rand(batch, humans, generator=g) > 0.2
     mask[:, 0] = True
     return robot, crowd, mask
 
 
-def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fixed_crowd: bool) -> float | None:
+def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fixed_crowd: bool,
+                         inputs: tuple[str, ...] = INPUTS, width: int = 5) -> float | None:
     """The largest Q difference between onnxruntime and torch on random inputs (None without onnxruntime)."""
     try:
         import onnxruntime
@@ -201,15 +221,15 @@ def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fix
     session = onnxruntime.InferenceSession(payload, providers=["CPUExecutionProvider"])
     worst = 0.0
     for batch, n, seed in ((64, humans, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1), 2)):
-        obs = _random_observations(batch, n, seed)
+        obs = _random_observations(batch, n, seed, width)
         with torch.no_grad():
             q = policy(*obs)[0]
-        got = session.run(["q_values"], dict(zip(INPUTS, (t.numpy() for t in obs))))[0]
+        got = session.run(["q_values"], dict(zip(inputs, (t.numpy() for t in obs))))[0]
         worst = max(worst, float((torch.from_numpy(got) - q).abs().max()))
     if worst > 1e-4:
         raise RuntimeError(f"the exported model's Q values differ from torch's by {worst:.2e} (> 1e-4)")
     return worst
 
 
-__all__ = ["DEFAULT_OPSET", "FIXED_CROWD_ENCODERS", "FORMATS", "INPUTS", "OUTPUTS", "ExportInfo", "GreedyQPolicy",
+__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "INPUTS", "OUTPUTS", "ExportInfo", "GreedyQPolicy",
            "check_writable", "export_onnx"]
