@@ -16,7 +16,7 @@ from gymnasium.utils.env_checker import check_env
 import crowdrl  # noqa: F401  (registers the Gymnasium ids)
 from crowdrl.gym_env import CrowdNavGymEnv
 
-IDS = ["crowdrl/CircleCrossing-v0", "crowdrl/SquareCrossing-v0"]
+IDS = ["crowdrl/CircleCrossing-v0", "crowdrl/SquareCrossing-v0", "crowdrl/Doorway-v0"]
 CHILD_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
 
 

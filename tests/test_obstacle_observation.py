@@ -173,3 +173,20 @@ def test_a_run_among_obstacles_reads_entity_tokens_and_an_open_one_does_not():
     assert tuple(plain.in_keys) == OBS_KEYS
     assert tuple(make_actor(validate({"env": {"scenario": "room"}, **small, "planning": {"enabled": False}}),
                             make_env(door), make_network(door)).in_keys) == ENTITY_OBS_KEYS
+
+
+def test_gymnasium_face_observes_the_nearest_edges():
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+
+    import crowdrl  # noqa: F401  (registers the ids)
+    from crowdrl.gym_env import CrowdNavGymEnv
+
+    env = gym.make("crowdrl/Doorway-v0").unwrapped
+    assert isinstance(env, CrowdNavGymEnv) and env.config.scenario == "doorway"
+    check_env(env, skip_render_check=True)
+    obs, _ = env.reset(seed=3)
+    assert obs["obstacles"].shape == (2, 4) and obs["obstacles_mask"].tolist() == [1, 1]
+    batched = CrowdNavEnv("doorway", num_envs=1, seed=3, split="train").reset()
+    assert obs["obstacles"].tolist() == batched["obstacles"][0].tolist()
+    assert "obstacles" not in gym.make("crowdrl/CircleCrossing-v0").reset(seed=0)[0]

@@ -231,5 +231,5 @@ def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fix
     return worst
 
 
-__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "INPUTS", "OUTPUTS", "ExportInfo", "GreedyQPolicy",
-           "check_writable", "export_onnx"]
+__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "INPUTS", "OUTPUTS", "ExportInfo",
+           "GreedyQPolicy", "check_writable", "export_onnx"]

@@ -17,6 +17,7 @@ import torch
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
+from crowdrl.sim.obstacles import nearest_edges
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
 from crowdrl.sim.scenarios import initial_states
 
@@ -26,7 +27,8 @@ SPLITS = tuple(rng.STREAMS)
 class CrowdNavGymEnv(gym.Env):
     """One crowd-navigation episode at a time, for tools that speak Gymnasium.
 
-    Observation: ``{"robot": (9,), "humans": (N, 5)}`` float32, world frame. Action: one of 81
+    Observation: ``{"robot": (9,), "humans": (N, 5)}`` float32, world frame (in the obstacle scenarios also
+    ``"obstacles"`` ``(K, 4)``, the nearest edges, and ``"obstacles_mask"`` ``(K,)``, as in ``CrowdNavEnv``). Action: one of 81
     unicycle actions, or with ``robot_kinematics="holonomic"`` a velocity in ``[-v_pref, v_pref]^2``
     (scaled down to ``v_pref`` if faster), both through :func:`crowdrl.sim.kinematics.decode_action`.
     Info (numbers only): ``event`` (0 running, 1 success, 2 collision, 3 timeout),
@@ -63,6 +65,10 @@ class CrowdNavGymEnv(gym.Env):
                 "humans": gym.spaces.Box(-np.inf, np.inf, (N, HUMAN_OBS_DIM), np.float32),
             }
         )
+        K = self.config.num_obstacle_tokens
+        if K > 0:  # obstacle scenarios: the edges nearest to the robot, as CrowdNavEnv's "obstacles"
+            self.observation_space["obstacles"] = gym.spaces.Box(-np.inf, np.inf, (K, 4), np.float32)
+            self.observation_space["obstacles_mask"] = gym.spaces.MultiBinary(K)
         if self.config.robot_kinematics == "unicycle":
             self.action_space = gym.spaces.Discrete(NUM_ACTIONS)
         else:
@@ -75,7 +81,13 @@ class CrowdNavGymEnv(gym.Env):
 
     def _obs(self) -> dict[str, np.ndarray]:
         robot, humans = observe(self.config, self._state)
-        return {"robot": robot[0].numpy().astype(np.float32), "humans": humans[0].numpy().astype(np.float32)}
+        obs = {"robot": robot[0].numpy().astype(np.float32), "humans": humans[0].numpy().astype(np.float32)}
+        s = self._state
+        if s.has_obstacles:
+            edges, mask = nearest_edges(s.robot_position, s.obstacles, s.obstacle_mask, self.config.num_obstacle_tokens)
+            obs["obstacles"] = edges[0].numpy().astype(np.float32)
+            obs["obstacles_mask"] = mask[0].numpy().astype(np.int8)
+        return obs
 
     def _info(self, event: int = 0, min_separation: float = math.inf, discomfort_count: int = 0) -> dict[str, Any]:
         return {"event": event, "min_separation": min_separation, "discomfort_count": discomfort_count,

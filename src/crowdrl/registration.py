@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-GYM_IDS = {"crowdrl/CircleCrossing-v0": "circle", "crowdrl/SquareCrossing-v0": "square"}
+GYM_IDS = {"crowdrl/CircleCrossing-v0": "circle", "crowdrl/SquareCrossing-v0": "square",
+           "crowdrl/Corridor-v0": "corridor", "crowdrl/Doorway-v0": "doorway", "crowdrl/Room-v0": "room"}
 
 
 def register_gym_envs() -> None:
