@@ -441,3 +441,38 @@ def test_trajectory_refuses_bad_obstacles():
         Trajectory(**base, obstacles=([[0.0, 0.0]],))
     with pytest.raises(ValueError, match=r"obstacles\[1\]: contains non-finite"):
         Trajectory(**base, obstacles=([[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.0], [float("nan"), 0.0]]))
+
+
+# --- the ORCA robot baseline among obstacles --------------------------------------------------------
+
+def test_orca_robot_baseline_sees_the_obstacles_as_rvo2_does():
+    """A robot 1 m below a wall, its goal straight through it: with the wall visible its obstacle
+    ORCA line caps the speed towards the wall at (distance - radius) / time_horizon_obst, as RVO2's
+    does; blind to it (``use_obstacles=False``) it heads straight on at full speed. Through the
+    policy's TensorDict face, it reads the env's ``obstacle_polygons`` and their mask."""
+    from tensordict import TensorDict
+
+    from crowdrl.envs import CrowdNavEnv
+    from crowdrl.policies.orca_baseline import OrcaRobotPolicy
+
+    cfg = CrowdConfig(scenario="doorway", robot_kinematics="holonomic")
+    robot = torch.tensor([[-3.0, -1.0, 0.0, 0.0, 0.3, -3.0, 4.0, 1.0, 0.0]])
+    humans = torch.tensor([[[4.0, 3.0, 0.0, 0.0, 0.3]]])  # one human far away
+    wall = torch.tensor([[[[-5.0, 0.0], [5.0, 0.0]]]])  # [B, P, V, 2]: one wall segment on y = 0
+    td = TensorDict({"robot": robot, "humans": humans, "humans_mask": torch.ones(1, 1, dtype=torch.bool),
+                     "obstacle_polygons": wall, "obstacle_polygons_mask": torch.ones(1, 1, 2, dtype=torch.bool)},
+                    batch_size=[1])
+    seen = OrcaRobotPolicy(cfg)(td.clone())["action"][0]
+    blind = OrcaRobotPolicy(cfg, use_obstacles=False)(td.clone())["action"][0]
+    cap = (1.0 - (0.3 + 0.01)) / cfg.orca_time_horizon_obst
+    assert 0 < float(seen[1]) <= cap + 1e-6, seen
+    assert torch.allclose(blind, torch.tensor([0.0, 1.0]), atol=1e-6), blind
+
+    # in the env the baseline reads the map it observes; seeing the walls, it hits them less
+    env = CrowdNavEnv("doorway", num_envs=16, robot_kinematics="holonomic", split="val", seed=0)
+    collisions = {}
+    for use in (True, False):
+        rollout = env.rollout(cfg.max_steps, OrcaRobotPolicy(env.config, use_obstacles=use),
+                              break_when_any_done=False, tensordict=env.reset())
+        collisions[use] = int((rollout["next", "event"] == COLLISION).any(1).sum())
+    assert collisions[True] < collisions[False], collisions

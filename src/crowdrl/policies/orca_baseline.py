@@ -6,6 +6,11 @@ zero (their goals are unknown to the robot), robot preferred velocity the unit v
 goal (shorter within 1 m). Only the robot's velocity is used: it is written as ``"action"`` for
 a ``CrowdNavEnv`` with ``robot_kinematics="holonomic"``.
 
+Among static obstacles (corridor, doorway, room) the robot sees them as RVO2 does: the episode's
+whole map (``"obstacle_polygons"`` with its mask, as the env observes it) gives obstacle ORCA
+lines before the agent lines, with ``config.orca_time_horizon_obst`` (``use_obstacles=False``
+ignores them, the open-space baseline).
+
 >>> from crowdrl.envs import CrowdNavEnv
 >>> env = CrowdNavEnv("circle", num_envs=4, robot_kinematics="holonomic")
 >>> rollout = env.rollout(10, OrcaRobotPolicy(env.config))
@@ -34,19 +39,22 @@ class OrcaRobotPolicy(TensorDictModuleBase):
     """
 
     def __init__(self, config: CrowdConfig | None = None, *, safety_space: float = 0.2,
-                 radius_margin: float = 0.01) -> None:
+                 radius_margin: float = 0.01, use_obstacles: bool = True) -> None:
         super().__init__()
         if safety_space < 0 or radius_margin < 0:
             raise ValueError("safety_space and radius_margin must be >= 0")
         self.config = config or CrowdConfig()
         self.safety_space = safety_space
         self.radius_margin = radius_margin
+        self.use_obstacles = bool(use_obstacles)
         self.in_keys = ["robot", "humans"]
         self.out_keys = ["action"]
 
-    def velocity(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None) -> Tensor:
+    def velocity(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None,
+                 obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Tensor:
         """The robot's ORCA velocity ``[B, 2]`` for world-frame observations (absent humans,
-        ``humans_mask [B, N]`` False, are not its neighbours)."""
+        ``humans_mask [B, N]`` False, are not its neighbours); ``obstacles`` ``[B, P, V, 2]`` are
+        RVO2 polygons with their vertex mask ``[B, P, V]`` (``None``: open space)."""
         cfg = self.config
         positions = torch.cat((robot[:, None, 0:2], humans[..., 0:2]), dim=1)
         velocities = torch.cat((robot[:, None, 2:4], humans[..., 2:4]), dim=1)
@@ -63,10 +71,14 @@ class OrcaRobotPolicy(TensorDictModuleBase):
             positions, velocities, pref, radius, max_speed,
             time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
             max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon, mask=mask,
+            obstacles=obstacles, obstacle_mask=None if obstacles is None else obstacles_mask,
+            time_horizon_obst=cfg.orca_time_horizon_obst,
         )
         return sol.velocities[:, 0]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict.set("action", self.velocity(tensordict.get("robot"), tensordict.get("humans"),
-                                               tensordict.get("humans_mask", None)))
+        polygons = tensordict.get("obstacle_polygons", None) if self.use_obstacles else None
+        tensordict.set("action", self.velocity(
+            tensordict.get("robot"), tensordict.get("humans"), tensordict.get("humans_mask", None),
+            polygons, None if polygons is None else tensordict.get("obstacle_polygons_mask")))
         return tensordict
