@@ -29,6 +29,7 @@ import numpy as np
 from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
 from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
+from crowdrl.sim.config import SCENARIOS
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
@@ -122,7 +123,7 @@ def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--group", action="append", required=True, help="LABEL=RUN[,RUN...]; the first is the baseline")
-    p.add_argument("--scenarios", nargs="+", default=["circle", "square"], choices=["circle", "square"])
+    p.add_argument("--scenarios", nargs="+", default=["circle", "square"], choices=list(SCENARIOS))
     p.add_argument("--split", choices=["test", "val"], default="test",
                    help="test: the eval-<scenario>/eval.json records; val: the validations logged in training")
     p.add_argument("--last", type=int, default=5, help="--split val: validations at the end of training to average")
