@@ -377,15 +377,20 @@ def _cell(row: dict[str, Any], key: str, digits: int) -> str:
 
 
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
+    from crowdrl.sim.config import OPEN_SCENARIOS
+
     seeds = ", ".join(map(str, plan.seeds))
     what = ("SG-D3QN exploration variants" if plan.encoders == (DEFAULT_ENCODER,)
             else f"exploration variants of the encoders {', '.join(plan.encoders)}")
     planning = " with online planning" if plan.planning else ""
+    transfer = [sc for sc in plan.scenarios if sc != plan.train_scenario]
+    paper = " (paper, one seed)" if set(plan.scenarios) & set(OPEN_SCENARIOS) else ""  # the paper has open space only
+    zero_shot = f"; {' and '.join(transfer)} {'is' if len(transfer) == 1 else 'are'} zero-shot" if transfer else ""
     lines = [f"# crowdrl reproduction: {what}{planning}, budget `{plan.budget}`",
              "",
              f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
-             f"{plan.episodes} cases per scenario (test seed 0; square is zero-shot). Cells: mean over seeds "
-             f"[95 % stratified-bootstrap CI, rliable, {plan.reps} resamples] (paper, one seed). "
+             f"{plan.episodes} cases per scenario (test seed 0{zero_shot}). Cells: mean over seeds "
+             f"[95 % stratified-bootstrap CI, rliable, {plan.reps} resamples]{paper}. "
              "P(improve): probability that the variant's success rate beats ε-greedy's (same encoder) on a random "
              "pair of seeds "
              "[95 % CI]. ORCA is deterministic: one evaluation.",
@@ -393,7 +398,7 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
     run_minutes = [json.loads((plan.run_dir(m, s) / "summary.json").read_text())["wall_s"] / 60
                    for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
     if run_minutes:
-        lines += [f"Training + validation + circle test per run (`summary.json`): {min(run_minutes):.1f}–"
+        lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`): {min(run_minutes):.1f}–"
                   f"{max(run_minutes):.1f} min."]
     if wall_s is not None:
         how = f"jobs={plan.jobs}" if plan.launcher == "local" else "launcher=slurm"
