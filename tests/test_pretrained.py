@@ -59,5 +59,10 @@ def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     got = json.loads((tmp_path / "eval" / "eval.json").read_text())
     want = {r["scenario"]: r for r in json.loads((agent / "eval.json").read_text())}["square"]
-    for key in METRICS:  # the same cases through the same code: equal on this machine
-        assert got[key] == want[key], key
+    # The same cases through the same code. On the machine that wrote eval.json every digit is equal;
+    # on another CPU the compiled kernels round differently, so a robot's path can drift by a step in
+    # a few of the 1000 episodes (measured: the same outcomes, navigation time 11.8817 vs 11.8825 s).
+    for key in ("success_rate", "collision_rate", "timeout_rate"):
+        assert abs(got[key] - want[key]) <= 0.003, (key, got[key], want[key])  # at most 3 of 1000 outcomes
+    for key in ("navigation_time", "average_return"):
+        assert got[key] == pytest.approx(want[key], rel=1e-3), key
