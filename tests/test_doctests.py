@@ -16,6 +16,7 @@ DOCUMENTED = {
     "crowdrl.exploration.intrinsic": "IntrinsicRewardTransform",
     "crowdrl.exploration.re3": "RE3",
     "crowdrl.policies.planning": "OnlinePlanner",
+    "crowdrl.sim.lidar": "lidar_scan",
     "crowdrl.training.config": "RunConfig",
     "crowdrl.training.trainer": "Trainer",
 }

@@ -19,6 +19,7 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.obstacles import nearest_edges
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
+from crowdrl.sim.lidar import observe_lidar
 from crowdrl.sim.scenarios import initial_states
 
 SPLITS = tuple(rng.STREAMS)
@@ -28,7 +29,9 @@ class CrowdNavGymEnv(gym.Env):
     """One crowd-navigation episode at a time, for tools that speak Gymnasium.
 
     Observation: ``{"robot": (9,), "humans": (N, 5)}`` float32, world frame (in the obstacle scenarios also
-    ``"obstacles"`` ``(K, 4)``, the nearest edges, and ``"obstacles_mask"`` ``(K,)``, as in ``CrowdNavEnv``). Action: one of 81
+    ``"obstacles"`` ``(K, 4)``, the nearest edges, and ``"obstacles_mask"`` ``(K,)``, as in ``CrowdNavEnv``; with
+    ``lidar_rays = R > 0`` also ``"lidar"`` ``(R,)``, the robot's scan clipped at ``lidar_range``, as in
+    ``CrowdNavEnv``: ``gym.make(id, lidar_rays=16)``). Action: one of 81
     unicycle actions, or with ``robot_kinematics="holonomic"`` a velocity in ``[-v_pref, v_pref]^2``
     (scaled down to ``v_pref`` if faster), both through :func:`crowdrl.sim.kinematics.decode_action`.
     Info (numbers only): ``event`` (0 running, 1 success, 2 collision, 3 timeout),
@@ -50,12 +53,15 @@ class CrowdNavGymEnv(gym.Env):
         split: str = "train",
         robot_kinematics: str = "unicycle",
         render_mode: str | None = None,
+        lidar_rays: int = CrowdConfig.lidar_rays,
+        lidar_range: float = CrowdConfig.lidar_range,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.config = CrowdConfig(scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
+        self.config = CrowdConfig(scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics,
+                                  lidar_rays=lidar_rays, lidar_range=lidar_range)
         self.split = split
         self.render_mode = render_mode
         N, v = self.config.num_humans, self.config.robot_v_pref
@@ -69,6 +75,9 @@ class CrowdNavGymEnv(gym.Env):
         if K > 0:  # obstacle scenarios: the edges nearest to the robot, as CrowdNavEnv's "obstacles"
             self.observation_space["obstacles"] = gym.spaces.Box(-np.inf, np.inf, (K, 4), np.float32)
             self.observation_space["obstacles_mask"] = gym.spaces.MultiBinary(K)
+        if self.config.lidar_rays > 0:
+            self.observation_space["lidar"] = gym.spaces.Box(0.0, self.config.lidar_range, (int(self.config.lidar_rays),),
+                                                             np.float32)
         if self.config.robot_kinematics == "unicycle":
             self.action_space = gym.spaces.Discrete(NUM_ACTIONS)
         else:
@@ -87,6 +96,8 @@ class CrowdNavGymEnv(gym.Env):
             edges, mask = nearest_edges(s.robot_position, s.obstacles, s.obstacle_mask, self.config.num_obstacle_tokens)
             obs["obstacles"] = edges[0].numpy().astype(np.float32)
             obs["obstacles_mask"] = mask[0].numpy().astype(np.int8)
+        if self.config.lidar_rays > 0:
+            obs["lidar"] = observe_lidar(self.config, s)[0].numpy().astype(np.float32)
         return obs
 
     def _info(self, event: int = 0, min_separation: float = math.inf, discomfort_count: int = 0) -> dict[str, Any]:

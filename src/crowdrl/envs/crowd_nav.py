@@ -11,6 +11,7 @@ from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
+from crowdrl.sim.lidar import observe_lidar
 from crowdrl.sim.obstacles import ObstacleEdges, nearest_edges, process_obstacles, put_edges, select_edges
 from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
@@ -37,7 +38,11 @@ class CrowdNavEnv(EnvBase):
     nearest to the robot, ``"obstacles"`` ``[B, K, 4]`` = (ax, ay, bx, by), nearest first, with
     ``"obstacles_mask"`` ``[B, K]`` (False: padding), and the episode's whole map,
     ``"obstacle_polygons"`` ``[B, P, V, 2]`` with ``"obstacle_polygons_mask"`` ``[B, P, V]`` (the
-    RVO2 polygons of :class:`~crowdrl.sim.state.CrowdState`; the ORCA baseline reads them). Actions are indices into the 81-action
+    RVO2 polygons of :class:`~crowdrl.sim.state.CrowdState`; the ORCA baseline reads them). With
+    ``config.lidar_rays = R > 0`` (every scenario) it adds ``"lidar"`` ``[B, R]``, the robot's 2-D scan
+    (:func:`crowdrl.sim.lidar.observe_lidar`: ray 0 along the heading, counter-clockwise, against the
+    obstacle edges and the present humans' discs, clipped at ``config.lidar_range``; no network of
+    crowdrl reads it). Actions are indices into the 81-action
     unicycle table, or, with ``robot_kinematics="holonomic"``, velocities ``[B, 2]`` clipped to
     ``v_pref`` (:func:`crowdrl.sim.kinematics.decode_action`). Collision and goal terminate;
     the time limit truncates.
@@ -234,6 +239,9 @@ class CrowdNavEnv(EnvBase):
                 obstacle_polygons=Unbounded((B, P, V, 2), dtype=self.dtype, device=dev),
                 obstacle_polygons_mask=Categorical(2, (B, P, V), dtype=torch.bool, device=dev),
             ))
+        if self.config.lidar_rays > 0:
+            self.observation_spec["lidar"] = Bounded(0.0, self.config.lidar_range, (B, int(self.config.lidar_rays)),
+                                                     dtype=self.dtype, device=dev)
         if self.config.robot_kinematics == "unicycle":
             self.action_spec = Categorical(NUM_ACTIONS, shape=(B,), dtype=torch.int64, device=dev)
         else:  # holonomic: a velocity, clipped to v_pref by the env (the box bounds each component)
@@ -285,6 +293,8 @@ class CrowdNavEnv(EnvBase):
             out.update({"obstacles": edges, "obstacles_mask": edges_mask,
                         "obstacle_polygons": state.obstacles.clone(),
                         "obstacle_polygons_mask": state.obstacle_mask.clone()})
+        if self.config.lidar_rays > 0:
+            out["lidar"] = observe_lidar(self.config, state)
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

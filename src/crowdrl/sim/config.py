@@ -13,6 +13,7 @@ OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdr
 # CrowdConfig's obstacle geometry keys (the Hydra env group's keys of the same names)
 OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
                  "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
+LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
@@ -67,6 +68,12 @@ class CrowdConfig:
     # The robot observes the obstacle edges nearest to it: at most this many (``"obstacles"``
     # ``[B, K, 4]``, K = min(obstacle_tokens, the scenario's edge count); crowdrl.envs.CrowdNavEnv).
     obstacle_tokens: int = 8
+    # A 2-D lidar scan in the observation (``"lidar"`` ``[B, lidar_rays]``, every scenario; conventions in
+    # crowdrl.sim.lidar): lidar_rays rays from the robot's centre, evenly spaced over 360° counter-clockwise
+    # from its heading, against the obstacle edges and the humans' discs, clipped at lidar_range metres
+    # (a 4 m range: the circle's radius). 0 rays: no scan.
+    lidar_rays: int = 0
+    lidar_range: float = 4.0
     # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
     # clipped to robot_v_pref; the ORCA robot baseline acts this way).
     robot_kinematics: str = "unicycle"
@@ -96,6 +103,11 @@ class CrowdConfig:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self._check_obstacle_keys()
+        if isinstance(self.lidar_rays, bool) or int(self.lidar_rays) != self.lidar_rays or self.lidar_rays < 0:
+            raise ValueError(f"lidar_rays must be an integer >= 0 (0: no scan), got {self.lidar_rays!r}")
+        if isinstance(self.lidar_range, bool) or not (isinstance(self.lidar_range, (int, float))
+                                                      and math.isfinite(self.lidar_range) and self.lidar_range > 0):
+            raise ValueError(f"lidar_range must be a finite number > 0, got {self.lidar_range!r}")
         if self.time_limit < self.time_step:
             raise ValueError(f"time_limit ({self.time_limit}) must be >= time_step ({self.time_step})")
         if self.discomfort_dist < 0:

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from crowdrl.files import atomic_write_bytes
-from crowdrl.sim.config import OBSTACLE_KEYS, OPEN_SCENARIOS
+from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, OPEN_SCENARIOS
 
 FORMAT_VERSION = 1
 
@@ -38,8 +38,10 @@ def config_fingerprint(config: dict) -> str:
     for group, neutral in _NEUTRAL.items():
         if group in keep:
             keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
-    if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space
-        drop = {"orca_backend", *(OBSTACLE_KEYS if keep["env"].get("scenario") in OPEN_SCENARIOS else ())}
+    if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space;
+        # the lidar keys nothing without a scan (runs recorded before them had none)
+        drop = {"orca_backend", *(OBSTACLE_KEYS if keep["env"].get("scenario") in OPEN_SCENARIOS else ()),
+                *(LIDAR_KEYS if not keep["env"].get("lidar_rays") else ())}
         keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",

@@ -32,7 +32,8 @@ from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.sim.kinematics import NUM_ACTIONS
-from crowdrl.sim.config import MAX_HUMANS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
+from crowdrl.sim.config import (LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, ORCA_BACKENDS, SCENARIOS,
+                                CrowdConfig)
 from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
@@ -67,6 +68,10 @@ class EnvConfig:
     room_pillar_max: float = CrowdConfig.room_pillar_max
     orca_time_horizon_obst: float = CrowdConfig.orca_time_horizon_obst
     obstacle_tokens: int = CrowdConfig.obstacle_tokens  # the nearest obstacle edges the robot observes
+    # a 2-D lidar scan in the observation, every scenario ("lidar" [B, lidar_rays]; 0: none): for users,
+    # no network of crowdrl reads it
+    lidar_rays: int = CrowdConfig.lidar_rays
+    lidar_range: float = CrowdConfig.lidar_range  # m, readings clipped to it
 
 
 @dataclass
@@ -308,8 +313,8 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _check(low <= high, "env.min_humans/env.max_humans",
            f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
     _one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
-    try:  # the obstacle geometry: CrowdConfig's checks, whose messages start with the key
-        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in OBSTACLE_KEYS})
+    try:  # the obstacle geometry and the lidar: CrowdConfig's checks, whose messages start with the key
+        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS)})
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
