@@ -15,7 +15,18 @@ seeded robot actions:
   same scenes one env at a time, as reference simulators do; independent of B, so measured
   once per N on ``--ref-steps`` steps in total, median of three runs (building a new simulator at every reset is
   timed; drawing the initial state is not: it is generated beforehand by ``initial_states``).
-  ``xref`` = core / ref.
+  ``xref`` = core / ref. In the obstacle scenarios the reference gets the episode's obstacles (RVO2's
+  ``add_obstacle``/``process_obstacles`` at every reset, timed) and, in ``doorway``, computes the
+  humans' waypoints through the gap with the batched simulator's pure function on ``[N, 2]`` tensors
+  (``ref wp%``: the share of its time spent there; ``xref-wp`` is ``xref`` against the reference
+  with that time taken out, i.e. as if the rule cost it nothing).
+
+``--scenario`` is any of :data:`crowdrl.sim.config.SCENARIOS`. ``--compare-obstacles [SCENARIO]``
+(``doorway`` by default) measures ``circle`` and that obstacle scenario in the same run instead of the
+B sweep, at B = 1024, N = 10 unless ``--batch-sizes``/``--num-humans`` say otherwise (alternating the
+two scenarios for each measurement, so both see the same machine), and adds the ratios of the
+obstacle scenario's rates to circle's (``core/circ``, ``env/circ``) to its row; ``edges`` is the
+scenario's obstacle edges (doorway: 2 wall segments, one each side of the gap).
 
 Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
 (printed once) is measured in a fresh subprocess at ``--memory-batch-size`` (default B=65,536),
@@ -31,6 +42,7 @@ Usage::
     python experiments/bench_env.py --quick
     python experiments/bench_env.py --threads 1,2 --json > bench.json
     python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.fast, when importable
+    python experiments/bench_env.py --compare-obstacles --no-memory  # circle vs doorway, B = 1024, N = 10
 
 The compiled backend builds one graph per (B, N) on first use (minutes with a cold inductor
 cache); the warm-up steps absorb it, but restrict ``--batch-sizes``/``--num-humans`` with it.
@@ -53,7 +65,7 @@ import torch
 
 from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim import crowd
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import OBSTACLE_SCENARIOS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, unicycle_step
 from crowdrl.sim.rng import episode_keys
 from crowdrl.sim.scenarios import initial_states
@@ -63,6 +75,7 @@ FULL_B = (1, 64, 256, 1024, 4096)
 FULL_N = (5, 10, 20)
 QUICK_B = (1, 64, 1024)
 QUICK_N = (10,)
+COMPARE_B, COMPARE_N = (1024,), (10,)  # --compare-obstacles
 MEM_B, MEM_N = 65536, 10
 
 
@@ -170,19 +183,41 @@ def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | Non
     pool = initial_states(cfg, episode_keys("train", seed, torch.arange(episodes)))
     rng = np.random.default_rng(seed)
     actions = rng.integers(0, NUM_ACTIONS, size=total_steps + 1)
-    rates = []
+    rates, waypoint_shares = [], []
+    waypoint_time = 0.0
+
+    def build(index: int, ep_seed: int) -> ReferenceCrowdSim:
+        sim = ReferenceCrowdSim.from_state(cfg, pool, index, seed=ep_seed)
+        if cfg.scenario == "doorway":  # time the waypoint rule (crowd.preferred_velocities on tensors)
+            inner = sim._preferred_velocities
+
+            def timed():
+                nonlocal waypoint_time
+                t = time.perf_counter()
+                out = inner()
+                waypoint_time += time.perf_counter() - t
+                return out
+            sim._preferred_velocities = timed
+        return sim
+
     for _ in range(3):  # short runs on a shared machine: the median of three
         steps, ep = 0, 0
+        waypoint_time = 0.0
         t0 = time.perf_counter()
-        sim = ReferenceCrowdSim.from_state(cfg, pool, 0, seed=seed)
+        sim = build(0, seed)
         while steps < total_steps:
             _, terminated, truncated, _ = sim.step(int(actions[steps]))
             steps += 1
             if terminated or truncated:
                 ep += 1
-                sim = ReferenceCrowdSim.from_state(cfg, pool, ep % episodes, seed=seed + ep)
-        rates.append(steps / (time.perf_counter() - t0))
-    return dict(ref_steps=steps, ref_sps=float(np.median(rates)), ref_sps_runs=rates, ref_episodes=ep)
+                sim = build(ep % episodes, seed + ep)
+        elapsed = time.perf_counter() - t0
+        rates.append(steps / elapsed)
+        waypoint_shares.append(waypoint_time / elapsed)
+    out = dict(ref_steps=steps, ref_sps=float(np.median(rates)), ref_sps_runs=rates, ref_episodes=ep)
+    if cfg.scenario == "doorway":
+        out["ref_waypoint_share"] = float(np.median(waypoint_shares))
+    return out
 
 
 # ------------------------------------------------------------------------------ memory probe
@@ -263,6 +298,73 @@ def run_memory_probe(args) -> dict | None:
 
 
 # ------------------------------------------------------------------------------------ main
+def sweep(args, step_fn) -> tuple[list[dict], dict]:
+    """The (threads, N, B) grid of one scenario."""
+    rows = []
+    ref_cache: dict[int, dict | None] = {}
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.num_humans:
+            cfg = CrowdConfig(scenario=args.scenario, num_humans=n, orca_backend=orca_backend(args.backend))
+            if n not in ref_cache:
+                ref_cache[n] = bench_reference(cfg, args.ref_steps, args.seed)
+                if ref_cache[n]:
+                    log(f"ref N={n}: {ref_cache[n]['ref_sps']:.0f} steps/s")
+            ref = ref_cache[n]
+            for b in args.batch_sizes:
+                row = dict(threads=threads, N=n, B=b)
+                row.update(bench_core(cfg, b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
+                if not args.no_env:
+                    row.update(bench_env(cfg, b, args.steps, args.warmup, args.seed, args.max_seconds))
+                if ref:
+                    row.update(ref_sps=ref["ref_sps"], speedup_vs_ref=row["core_sps"] / ref["ref_sps"])
+                rows.append(row)
+                log(f"threads={threads} N={n} B={b}: core {row['core_sps']:.0f} env {row.get('env_sps', 0):.0f} steps/s")
+    return rows, ref_cache
+
+
+def compare_obstacles(args, step_fn) -> tuple[list[dict], dict]:
+    """``circle`` and the obstacle scenario ``args.compare_obstacles`` at every (threads, N, B): each
+    measurement (reference, core, env) taken for both scenarios back to back; the obstacle row gets
+    its rates' ratios to circle's."""
+    scenarios = ("circle", args.compare_obstacles)
+    rows = []
+    ref_cache: dict[str, dict | None] = {}  # by "scenario N=n"
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.num_humans:
+            cfgs = {s: CrowdConfig(scenario=s, num_humans=n, orca_backend=orca_backend(args.backend)) for s in scenarios}
+            for s in scenarios:
+                if f"{s} N={n}" not in ref_cache:
+                    ref_cache[f"{s} N={n}"] = ref = bench_reference(cfgs[s], args.ref_steps, args.seed)
+                    if ref:
+                        log(f"ref {s} N={n}: {ref['ref_sps']:.0f} steps/s")
+            for b in args.batch_sizes:
+                pair = {s: dict(scenario=s, edges=cfgs[s].num_obstacle_edges, threads=threads, N=n, B=b)
+                        for s in scenarios}
+                for s in scenarios:
+                    pair[s].update(bench_core(cfgs[s], b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
+                if not args.no_env:
+                    for s in scenarios:
+                        pair[s].update(bench_env(cfgs[s], b, args.steps, args.warmup, args.seed, args.max_seconds))
+                for s in scenarios:
+                    ref = ref_cache[f"{s} N={n}"]
+                    if ref:
+                        pair[s].update(ref_sps=ref["ref_sps"], speedup_vs_ref=pair[s]["core_sps"] / ref["ref_sps"])
+                        if "ref_waypoint_share" in ref:  # and xref against the reference without that time
+                            share = ref["ref_waypoint_share"]
+                            pair[s].update(ref_waypoint_share=share,
+                                           speedup_vs_ref_no_wp=pair[s]["speedup_vs_ref"] * (1 - share))
+                circle, obst = pair["circle"], pair[args.compare_obstacles]
+                obst["core_vs_circle"] = obst["core_sps"] / circle["core_sps"]
+                if not args.no_env:
+                    obst["env_vs_circle"] = obst["env_sps"] / circle["env_sps"]
+                rows += [circle, obst]
+                log(f"threads={threads} N={n} B={b}: {args.compare_obstacles}/circle core {obst['core_vs_circle']:.2f} "
+                    f"env {obst.get('env_vs_circle', float('nan')):.2f}")
+    return rows, ref_cache
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help=f"B in {QUICK_B}, N in {QUICK_N}, fewer steps (< 1 min)")
@@ -275,7 +377,10 @@ def parse_args(argv=None):
     p.add_argument("--ref-steps", type=int, default=None, help="reference steps per N (default 400, quick 150)")
     p.add_argument("--batch-sizes", default=None, help="comma list overriding the B values")
     p.add_argument("--num-humans", default=None, help="comma list overriding the N values")
-    p.add_argument("--scenario", default="circle", choices=("circle", "square"))
+    p.add_argument("--scenario", default="circle", choices=SCENARIOS)
+    p.add_argument("--compare-obstacles", nargs="?", const="doorway", default=None, choices=OBSTACLE_SCENARIOS,
+                   metavar="SCENARIO", help="measure circle and SCENARIO (default doorway) in the same run, at "
+                   "B = 1024, N = 10 unless --batch-sizes/--num-humans are given, with the rate ratios")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-env", action="store_true", help="skip the CrowdNavEnv column")
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
@@ -290,10 +395,11 @@ def parse_args(argv=None):
     args.steps = args.steps or (10 if args.quick else 30)
     args.max_seconds = args.max_seconds or (4.0 if args.quick else 15.0)
     args.ref_steps = args.ref_steps or (150 if args.quick else 400)
-    args.batch_sizes = [int(b) for b in args.batch_sizes.split(",")] if args.batch_sizes else list(
-        QUICK_B if args.quick else FULL_B)
-    args.num_humans = [int(n) for n in args.num_humans.split(",")] if args.num_humans else list(
-        QUICK_N if args.quick else FULL_N)
+    default_b, default_n = (QUICK_B, QUICK_N) if args.quick else (FULL_B, FULL_N)
+    if args.compare_obstacles:
+        default_b, default_n = COMPARE_B, COMPARE_N
+    args.batch_sizes = [int(b) for b in args.batch_sizes.split(",")] if args.batch_sizes else list(default_b)
+    args.num_humans = [int(n) for n in args.num_humans.split(",")] if args.num_humans else list(default_n)
     return args
 
 
@@ -302,6 +408,11 @@ COLUMNS = [Column("threads", "thr"), Column("N"), Column("B"), Column("core_sps"
            Column("resets_per_1k", "rst/1k", ".1f"), Column("step_only_sps", "no-reset", ".0f"),
            Column("env_sps", "env sps", ".0f"), Column("ref_sps", "ref sps", ".0f"),
            Column("speedup_vs_ref", "xref", ".1f"), Column("state_mb", "state MB", ".3f")]
+# --compare-obstacles: the scenario and its obstacle edges first, the ratios to circle last
+COMPARE_COLUMNS = [Column("scenario"), Column("edges"), *COLUMNS,
+                   Column("ref_waypoint_share", "ref wp%", lambda v: f"{100 * v:.0f}"),
+                   Column("speedup_vs_ref_no_wp", "xref-wp", ".1f"),
+                   Column("core_vs_circle", "core/circ", ".2f"), Column("env_vs_circle", "env/circ", ".2f")]
 
 
 def memory_note(memory: dict) -> str:
@@ -327,33 +438,22 @@ def main(argv=None) -> int:
         print(json.dumps(memory_probe(cfg, args.memory_batch_size, args.seed, step_fn)))
         return 0
 
-    rows = []
-    ref_cache: dict[int, dict | None] = {}
-    for threads in args.threads:
-        torch.set_num_threads(threads)
-        for n in args.num_humans:
-            cfg = CrowdConfig(scenario=args.scenario, num_humans=n, orca_backend=orca_backend(args.backend))
-            if n not in ref_cache:
-                ref_cache[n] = bench_reference(cfg, args.ref_steps, args.seed)
-                if ref_cache[n]:
-                    log(f"ref N={n}: {ref_cache[n]['ref_sps']:.0f} steps/s")
-            ref = ref_cache[n]
-            for b in args.batch_sizes:
-                row = dict(threads=threads, N=n, B=b)
-                row.update(bench_core(cfg, b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
-                if not args.no_env:
-                    row.update(bench_env(cfg, b, args.steps, args.warmup, args.seed, args.max_seconds))
-                if ref:
-                    row.update(ref_sps=ref["ref_sps"], speedup_vs_ref=row["core_sps"] / ref["ref_sps"])
-                rows.append(row)
-                log(f"threads={threads} N={n} B={b}: core {row['core_sps']:.0f} env {row.get('env_sps', 0):.0f} steps/s")
+    if args.compare_obstacles:
+        rows, ref_cache = compare_obstacles(args, step_fn)
+    else:
+        rows, ref_cache = sweep(args, step_fn)
     memory = None if args.no_memory else run_memory_probe(args)
     meta = dict(backend=args.backend, scenario=args.scenario, torch=torch.__version__, cpus=os.cpu_count(),
                 python=platform.python_version(), machine=platform.machine(), seed=args.seed,
                 steps=args.steps, warmup=args.warmup, ref_steps=args.ref_steps)
-    emit(rows, columns=COLUMNS, meta=meta, as_json=args.json, extra=dict(memory=memory, reference=ref_cache),
+    scenarios = f"scenario {args.scenario}"
+    if args.compare_obstacles:
+        meta.update(scenario=f"circle,{args.compare_obstacles}", compare_obstacles=args.compare_obstacles)
+        scenarios = f"scenarios circle and {args.compare_obstacles}"
+    emit(rows, columns=COMPARE_COLUMNS if args.compare_obstacles else COLUMNS, meta=meta, as_json=args.json,
+         extra=dict(memory=memory, reference=ref_cache),
          notes=[memory_note(memory)] if memory else [],
-         title=f"Simulator throughput: {meta['backend']} backend, scenario {meta['scenario']}, torch {meta['torch']}, "
+         title=f"Simulator throughput: {meta['backend']} backend, {scenarios}, torch {meta['torch']}, "
                f"{meta['cpus']} CPUs, random actions, env-steps/s = B * steps / s")
     return 0
 

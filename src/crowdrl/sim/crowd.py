@@ -63,13 +63,20 @@ def doorway_waypoints(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tenso
 
 
 def human_preferred_velocities(cfg: CrowdConfig, state: CrowdState) -> Tensor:
-    """The humans' preferred velocities: :func:`human_preferred_velocity` towards the goal; in
-    ``doorway`` the same speed, towards :func:`doorway_waypoints` (the gap) while the wall is between
-    a human and its goal."""
-    pref = human_preferred_velocity(state.human_position, state.human_goal)
+    """The humans' preferred velocities in ``state``: :func:`preferred_velocities` of their positions
+    and goals."""
+    return preferred_velocities(cfg, state.human_position, state.human_goal)
+
+
+def preferred_velocities(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tensor:
+    """Preferred velocities ``[..., 2]`` of humans at ``position`` heading for ``goal`` (``[..., 2]``):
+    :func:`human_preferred_velocity` towards the goal; in ``doorway`` the same speed, towards
+    :func:`doorway_waypoints` (the gap) while the wall is between a human and its goal. A pure
+    function (the reference simulator calls it too, :mod:`crowdrl.sim.reference`)."""
+    pref = human_preferred_velocity(position, goal)
     if cfg.scenario != "doorway":
         return pref
-    to = doorway_waypoints(cfg, state.human_position, state.human_goal) - state.human_position
+    to = doorway_waypoints(cfg, position, goal) - position
     dist = torch.linalg.vector_norm(to, dim=-1, keepdim=True)
     speed = torch.linalg.vector_norm(pref, dim=-1, keepdim=True)
     return torch.where(dist > 1e-6, to / dist.clamp_min(1e-12) * speed, pref)

@@ -3,29 +3,40 @@
 :class:`ReferenceCrowdSim` re-implements one episode of the MDP of ``docs/mdp.md`` the way the
 reference implementations (CrowdNav, SG-D3QN) do it: python floats for the robot, small numpy
 float64 arrays for the humans, one loop iteration per agent, and the RVO2 C++ library
-(``pyrvo``, RVO2 2.0.3) for the humans' ORCA velocities. It shares no step code with the
-batched torch simulator (:mod:`crowdrl.sim.crowd`); it exists to check that simulator against
+(``pyrvo``, RVO2 2.0.3) for the humans' ORCA velocities, static obstacles included. It shares no
+step code with the batched torch simulator (:mod:`crowdrl.sim.crowd`) but one pure function, the
+humans' preferred velocities in ``doorway`` (below); it exists to check that simulator against
 an independent implementation (``tests/test_reference_agreement.py``) and to time the
-one-episode-at-a-time baseline (``experiments/bench_env.py``). No torch is used in
-:meth:`ReferenceCrowdSim.step`; :meth:`ReferenceCrowdSim.from_state` only reads a
-:class:`~crowdrl.sim.state.CrowdState` (any object with the same tensor fields).
+one-episode-at-a-time baseline (``experiments/bench_env.py``). :meth:`ReferenceCrowdSim.from_state`
+only reads a :class:`~crowdrl.sim.state.CrowdState` (any object with the same tensor fields).
+
+Obstacles (the scenarios corridor, doorway and room): the episode's polygons (``state.obstacles``,
+only the vertices ``state.obstacle_mask`` marks valid; 2 vertices are a wall segment) are given to
+RVO2 once, at construction (``add_obstacle`` in the state's polygon order, then
+``process_obstacles``); they are static, so :meth:`ReferenceCrowdSim.load_state` refuses a state
+with other obstacles.
 
 Per step, in this order (``crowd.step`` order):
 
 1. humans: every human's position, velocity and preferred velocity (vector to goal, scaled to
    unit length if longer than 1) is written into the episode's ``RVOSimulator`` (radius
    ``human_radius + 0.01``, max speed ``human_v_pref``, the ORCA parameters of
-   :class:`~crowdrl.sim.config.CrowdConfig`, ``time_horizon_obst`` 5, no obstacles), one
+   :class:`~crowdrl.sim.config.CrowdConfig`, ``time_horizon_obst = orca_time_horizon_obst``), one
    ``do_step`` computes all new velocities from the state at the start of the step, and they
    are read back. RVO2 works in float32; positions are kept here in float64 and RVO2's own
-   position update is discarded (overwritten at the next step).
+   position update is discarded (overwritten at the next step). In ``doorway`` the preferred
+   velocities head for the gap while the wall is between a human and its goal: they come from
+   :func:`crowdrl.sim.crowd.preferred_velocities`, called on the episode's ``[N, 2]`` float64
+   arrays (the only torch in :meth:`ReferenceCrowdSim.step`; one implementation of that rule).
 2. robot: unicycle, ``theta <- wrap(theta + rot)``, ``v = speed * (cos theta, sin theta)``.
 3. continuous collision check: the closest distance of each human's relative linear motion
-   within the step to the robot, minus both radii (CrowdNav's ``point_to_segment_dist``).
+   within the step to the robot, minus both radii (CrowdNav's ``point_to_segment_dist``); with
+   obstacles, the robot's straight path over the step against every obstacle edge: closer than
+   ``robot_radius`` (or crossing the edge) is a collision too (``info["obstacle_collision"]``).
 4. move everybody by ``v * dt``; goal reached iff ``|p_robot - g| < robot_radius``.
 5. reward: ``0.2 * (d_before - d_after) + sum_i min(0, dmin_i - 0.2)`` plus ``+0.25`` (goal) or
-   ``-0.25`` (collision; collision has priority); terminated on collision or goal, truncated
-   when the step count reaches ``max_steps`` without termination.
+   ``-0.25`` (collision, with a human or an obstacle; collision has priority); terminated on
+   collision or goal, truncated when the step count reaches ``max_steps`` without termination.
 6. non-stop humans: a human whose new position is within ``human_radius`` of its goal counts
    one more step; at ``goal_steps_before_new_goal`` steps it gets a new goal, its velocity is
    set to 0 and its counter to 0.
@@ -37,7 +48,11 @@ test passes one that reads the goal the batched simulator chose for the same ste
 callback, a fresh goal is drawn CrowdNav-style from this object's own ``numpy`` generator (circle
 or square point with the spawn clearance, at most 16 tries, the last one kept): statistically the
 same rule, not the same numbers, so trajectories only match the batched simulator up to the
-first new goal.
+first new goal. In the obstacle scenarios the rule is :func:`crowdrl.sim.scenarios.new_human_goals`'
+for them: up to 64 candidates on the other side (corridor: the other end; doorway: the other side
+of the wall; room: a random side of the square), the first that keeps ``human_radius + margin``
+from the obstacles with a straight path from where the human stands that keeps it too, preferably
+also the spawn clearance from every agent's position and goal; none reachable: the goal stays.
 """
 
 from __future__ import annotations
@@ -53,8 +68,8 @@ from crowdrl.sim.config import CrowdConfig
 RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
 EVENT_NAMES = ("running", "success", "collision", "timeout")
 
-TIME_HORIZON_OBST = 5.0
 NEW_GOAL_TRIES = 16
+OBSTACLE_GOAL_TRIES = 64  # crowdrl.sim.scenarios.OBSTACLE_GOAL_ROUNDS
 
 _PYRVO_HINT = (
     "ReferenceCrowdSim needs the RVO2 bindings `pyrvo`; install them with "
@@ -98,6 +113,42 @@ def point_to_segment_dist(x1: float, y1: float, x2: float, y2: float, x3: float,
     return math.hypot(x1 + u * px - x3, y1 + u * py - y3)
 
 
+def segment_distance(x1: float, y1: float, x2: float, y2: float,
+                     x3: float, y3: float, x4: float, y4: float) -> float:
+    """Distance between the segments (x1, y1)-(x2, y2) and (x3, y3)-(x4, y4): 0 when they cross,
+    else the smallest distance of an endpoint to the other segment."""
+    d1 = (x4 - x3) * (y1 - y3) - (y4 - y3) * (x1 - x3)
+    d2 = (x4 - x3) * (y2 - y3) - (y4 - y3) * (x2 - x3)
+    d3 = (x2 - x1) * (y3 - y1) - (y2 - y1) * (x3 - x1)
+    d4 = (x2 - x1) * (y4 - y1) - (y2 - y1) * (x4 - x1)
+    if d1 * d2 < 0 and d3 * d4 < 0:
+        return 0.0
+    return min(point_to_segment_dist(x3, y3, x4, y4, x1, y1), point_to_segment_dist(x3, y3, x4, y4, x2, y2),
+               point_to_segment_dist(x1, y1, x2, y2, x3, y3), point_to_segment_dist(x1, y1, x2, y2, x4, y4))
+
+
+def polygon_edges(polygons) -> list[tuple[float, float, float, float]]:
+    """The edges ``(ax, ay, bx, by)`` of obstacle polygons: a wall (2 vertices) is one edge, a solid
+    polygon of ``n`` vertices has ``n`` (the last closing it)."""
+    edges = []
+    for poly in polygons:
+        n = len(poly)
+        for k in range(1 if n == 2 else n):
+            (ax, ay), (bx, by) = poly[k], poly[(k + 1) % n]
+            edges.append((float(ax), float(ay), float(bx), float(by)))
+    return edges
+
+
+def _inside_solid(x: float, y: float, polygons) -> bool:
+    """Whether the point lies inside (or on) a convex solid polygon (3+ counter-clockwise vertices)."""
+    for poly in polygons:
+        n = len(poly)
+        if n >= 3 and all((poly[(k + 1) % n][0] - poly[k][0]) * (y - poly[k][1])
+                          - (poly[(k + 1) % n][1] - poly[k][1]) * (x - poly[k][0]) >= 0 for k in range(n)):
+            return True
+    return False
+
+
 def _wrap(angle: float) -> float:
     """Angle in ``[-pi, pi)``."""
     return (angle + math.pi) % (2 * math.pi) - math.pi
@@ -121,9 +172,18 @@ class ReferenceCrowdSim:
         step_count: int = 0,
         new_goal_fn: Callable[["ReferenceCrowdSim", int], tuple[float, float]] | None = None,
         seed: int | None = None,
+        obstacles=(),
     ) -> None:
+        """``obstacles``: the episode's static obstacle polygons, each ``[n, 2]`` (RVO2's convention:
+        2 vertices a wall segment, 3 or more a counter-clockwise solid polygon); none by default."""
         pyrvo = _import_pyrvo()
         self.cfg = cfg
+        self.obstacles = tuple(tuple((float(x), float(y)) for x, y in np.asarray(poly, dtype=np.float64).reshape(-1, 2))
+                               for poly in obstacles)
+        if any(len(poly) < 2 for poly in self.obstacles):
+            raise ValueError("an obstacle polygon needs at least 2 vertices (2: a wall segment)")
+        self._edges = polygon_edges(self.obstacles)
+        self._waypoints = cfg.scenario == "doorway"
         self.new_goal_fn = new_goal_fn
         self._rng = np.random.default_rng(seed)
         n = len(human_position)
@@ -134,14 +194,19 @@ class ReferenceCrowdSim:
                   human_goal, human_goal_steps if human_goal_steps is not None else np.zeros(n, np.int64),
                   step_count)
         radius = cfg.human_radius + cfg.orca_radius_margin
+        tho = cfg.orca_time_horizon_obst  # unused by RVO2 without obstacles
         self._rvo = pyrvo.RVOSimulator(
             cfg.time_step, cfg.orca_neighbor_dist, cfg.orca_max_neighbors, cfg.orca_time_horizon,
-            TIME_HORIZON_OBST, radius, cfg.human_v_pref,
+            tho, radius, cfg.human_v_pref,
         )
+        for poly in self.obstacles:
+            self._rvo.add_obstacle(list(poly))
+        if self.obstacles:
+            self._rvo.process_obstacles()
         for i in range(n):
             self._rvo.add_agent(
                 (float(self.human_position[i, 0]), float(self.human_position[i, 1])),
-                cfg.orca_neighbor_dist, cfg.orca_max_neighbors, cfg.orca_time_horizon, TIME_HORIZON_OBST,
+                cfg.orca_neighbor_dist, cfg.orca_max_neighbors, cfg.orca_time_horizon, tho,
                 radius, cfg.human_v_pref,
                 (float(self.human_velocity[i, 0]), float(self.human_velocity[i, 1])),
             )
@@ -164,7 +229,13 @@ class ReferenceCrowdSim:
         def get(name):
             return np.asarray(getattr(state, name)[index].detach().cpu().double().numpy())
 
+        polygons = ()
+        obs, mask = getattr(state, "obstacles", None), getattr(state, "obstacle_mask", None)
+        if obs is not None and obs.shape[1] > 0:  # [B, P, V, 2] and [B, P, V]: the valid vertices only
+            verts, valid = get("obstacles"), np.asarray(mask[index].cpu().numpy(), dtype=bool)
+            polygons = tuple(verts[p][valid[p]] for p in range(verts.shape[0]) if valid[p].sum() >= 2)
         return dict(
+            obstacles=polygons,
             robot_position=get("robot_position"),
             robot_velocity=get("robot_velocity"),
             robot_heading=float(get("robot_heading")),
@@ -185,8 +256,13 @@ class ReferenceCrowdSim:
         return cls(cfg, **fields, **kwargs)
 
     def load_state(self, state: Any, index: int = 0) -> None:
-        """Overwrite this episode's state with episode ``index`` of a batched state (re-sync)."""
+        """Overwrite this episode's state with episode ``index`` of a batched state (re-sync); its
+        obstacles must be this episode's (RVO2's are fixed at construction)."""
         f = self._episode_fields(state, index)
+        obstacles = tuple(tuple((float(x), float(y)) for x, y in poly) for poly in f["obstacles"])
+        if obstacles != self.obstacles:
+            raise ValueError(f"episode {index} of the state has other obstacles than this simulator; "
+                             "build a new one (ReferenceCrowdSim.from_state)")
         self._set(f["robot_position"], f["robot_velocity"], f["robot_heading"], f["robot_goal"],
                   f["human_position"], f["human_velocity"], f["human_goal"], f["human_goal_steps"],
                   f["step_count"])
@@ -200,15 +276,29 @@ class ReferenceCrowdSim:
         return self.robot_velocity.copy(), self.human_velocity.copy()
 
     # ------------------------------------------------------------------- step
+    def _preferred_velocities(self) -> np.ndarray:
+        """``doorway``: the humans' preferred velocities ``[N, 2]`` (through the gap), by the batched
+        simulator's pure function on this episode's arrays."""
+        import torch  # noqa: PLC0415 - only the doorway needs it
+
+        from crowdrl.sim.crowd import preferred_velocities  # noqa: PLC0415
+
+        return preferred_velocities(self.cfg, torch.from_numpy(self.human_position),
+                                    torch.from_numpy(self.human_goal)).numpy()
+
     def _human_velocities(self) -> np.ndarray:
         sim = self._rvo
+        pref = self._preferred_velocities() if self._waypoints else None
         for i in range(self.num_humans):
             px, py = float(self.human_position[i, 0]), float(self.human_position[i, 1])
-            gx, gy = float(self.human_goal[i, 0]), float(self.human_goal[i, 1])
-            dx, dy = gx - px, gy - py
-            dist = math.hypot(dx, dy)
-            if dist > 1:
-                dx, dy = dx / dist, dy / dist
+            if pref is not None:
+                dx, dy = float(pref[i, 0]), float(pref[i, 1])
+            else:
+                gx, gy = float(self.human_goal[i, 0]), float(self.human_goal[i, 1])
+                dx, dy = gx - px, gy - py
+                dist = math.hypot(dx, dy)
+                if dist > 1:
+                    dx, dy = dx / dist, dy / dist
             sim.set_agent_position(i, (px, py))
             sim.set_agent_velocity(i, (float(self.human_velocity[i, 0]), float(self.human_velocity[i, 1])))
             sim.set_agent_pref_velocity(i, (dx, dy))
@@ -247,11 +337,13 @@ class ReferenceCrowdSim:
             ex, ey = px + rvx * dt, py + rvy * dt
             dmin[i] = point_to_segment_dist(px, py, ex, ey, 0.0, 0.0) - radii
         min_separation = float(dmin.min())
-        collided = min_separation < 0
         discomfort_count = int(sum(1 for d in dmin if d < cfg.discomfort_dist))
 
-        # 3. move
+        # 3. move; the robot's path over the step against the obstacle edges
         new_rx, new_ry = rx + vx * dt, ry + vy * dt
+        obstacle_collision = any(segment_distance(rx, ry, new_rx, new_ry, *edge) < cfg.robot_radius
+                                 for edge in self._edges)
+        collided = min_separation < 0 or obstacle_collision
         self.human_position = self.human_position + new_hv * dt
         d_before = math.hypot(rx - gx, ry - gy)
         d_after = math.hypot(new_rx - gx, new_ry - gy)
@@ -302,6 +394,7 @@ class ReferenceCrowdSim:
             "event_name": EVENT_NAMES[event],
             "reached": reached,
             "collided": collided,
+            "obstacle_collision": obstacle_collision,  # the robot touched an obstacle (False without any)
             "timed_out": truncated,
             "min_separation": min_separation,
             "discomfort_count": discomfort_count,
@@ -316,6 +409,8 @@ class ReferenceCrowdSim:
             gx, gy = self.new_goal_fn(self, human)
             return float(gx), float(gy)
         cfg = self.cfg
+        if self.obstacles:
+            return self._new_obstacle_goal(human)
         clearance = cfg.spawn_clearance
         others = [(self.robot_position, self.robot_goal)] + [
             (self.human_position[j], self.human_goal[j]) for j in range(self.num_humans) if j != human
@@ -334,3 +429,37 @@ class ReferenceCrowdSim:
                    and math.hypot(goal[0] - g[0], goal[1] - g[1]) >= clearance for p, g in others):
                 break
         return goal
+
+    def _new_obstacle_goal(self, human: int) -> tuple[float, float]:
+        """A new goal in an obstacle scenario (the module docstring): reachable in a straight line."""
+        cfg = self.cfg
+        clear = cfg.human_radius + cfg.obstacle_clearance_margin
+        hx, hy = float(self.human_position[human, 0]), float(self.human_position[human, 1])
+        # every agent's position and goal, the human's own included (as in the batched rule)
+        others = [self.robot_position, self.robot_goal, *self.human_position, *self.human_goal]
+        fallback = None
+        for _ in range(OBSTACLE_GOAL_TRIES):
+            ux, uy, u_side = self._rng.random(), self._rng.random(), self._rng.random()
+            if cfg.scenario == "room":  # square crossing: a random side of x
+                side = -1.0 if u_side > 0.5 else 1.0
+                goal = (ux * cfg.square_width * 0.5 * side, (uy - 0.5) * cfg.square_width)
+            else:  # the other end of the corridor, the other side of the doorway's wall
+                side = -1.0 if hy > 0 else 1.0
+                if cfg.scenario == "corridor":
+                    half_l = cfg.corridor_length / 2
+                    goal = ((ux * 2 - 1) * (cfg.corridor_width / 2 - clear), side * half_l * (0.2 + 0.8 * uy))
+                else:
+                    half_w, half_h = min(cfg.doorway_width, cfg.square_width) / 2 - clear, cfg.square_width / 2
+                    goal = ((ux * 2 - 1) * half_w, (clear + uy * (half_h - clear)) * side)
+            gx, gy = goal
+            reachable = not _inside_solid(gx, gy, self.obstacles) and all(
+                point_to_segment_dist(ax, ay, bx, by, gx, gy) >= clear
+                and segment_distance(hx, hy, gx, gy, ax, ay, bx, by) >= clear for ax, ay, bx, by in self._edges)
+            if not reachable:
+                continue
+            if all(math.hypot(gx - p[0], gy - p[1]) >= cfg.spawn_clearance for p in others):
+                return goal
+            fallback = goal if fallback is None else fallback
+        if fallback is not None:
+            return fallback
+        return float(self.human_goal[human, 0]), float(self.human_goal[human, 1])
