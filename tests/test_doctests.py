@@ -12,6 +12,7 @@ import pytest
 DOCUMENTED = {
     "crowdrl.envs.crowd_nav": "CrowdNavEnv",
     "crowdrl.evaluation.rollout": "evaluate",
+    "crowdrl.files": "atomic_write_with",
     "crowdrl.exploration.icm": "ICM",
     "crowdrl.exploration.intrinsic": "IntrinsicRewardTransform",
     "crowdrl.exploration.re3": "RE3",

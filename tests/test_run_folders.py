@@ -334,6 +334,24 @@ def test_atomic_writes_leave_the_mode_a_plain_open_would(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "plain.json"]  # no temp file left
 
 
+def test_a_writer_that_fails_leaves_the_old_file_and_no_temp_file(tmp_path):
+    from crowdrl.files import atomic_write_with
+
+    path = tmp_path / "table.csv"
+    path.write_text("old")
+
+    def half_then_fail(tmp):
+        tmp.write_text("half a ta")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write_with(path, half_then_fail, suffix=".csv")
+    assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+    seen = []
+    atomic_write_with(path, lambda tmp: (seen.append(tmp.suffix), tmp.write_text("new")), suffix=".csv")
+    assert path.read_text() == "new" and seen == [".csv"] and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+
+
 def test_the_raw_simulator_refuses_non_finite_inputs_naming_them():
     import math
 

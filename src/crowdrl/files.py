@@ -33,11 +33,43 @@ def dumps_json(obj: Any, *, indent: int | None = 1, default: Callable[[Any], Any
     return json.dumps(finite_or_null(obj), indent=indent, default=default, sort_keys=sort_keys, allow_nan=False)
 
 
-def atomic_write_bytes(path: Path | str, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the new one, never half."""
+def _temp_beside(path: Path, suffix: str = "") -> Path:
+    """A fresh name beside ``path`` (same folder, so the rename is atomic), ending in ``suffix``
+    (writers such as matplotlib pick the format from it)."""
+    return path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{suffix}"
+
+
+def atomic_write_with(path: Path | str, write: Callable[[Path], Any], *, suffix: str = "") -> Path:
+    """Write ``path`` through ``write(tmp)``, a function that creates the file ``tmp`` (a figure's
+    ``savefig``, a CSV writer), then rename ``tmp`` over ``path``: readers see the old file or the
+    new one, never half. ``tmp`` ends in ``suffix``; on any error it is removed and ``path`` is
+    untouched.
+
+    Examples:
+        >>> import tempfile
+        >>> out = Path(tempfile.mkdtemp()) / "notes.txt"
+        >>> atomic_write_with(out, lambda tmp: tmp.write_text("hello")).read_text()
+        'hello'
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp"
+    tmp = _temp_beside(path, suffix)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_bytes(path: Path | str, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the new one, never half
+    (flushed to disk before the rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_beside(path)
     try:
         mode = os.stat(path).st_mode & 0o7777  # an existing file keeps its mode, as open(path, "w") would
     except FileNotFoundError:
@@ -63,4 +95,4 @@ def atomic_write_json(path: Path | str, obj: Any, *, default: Callable[[Any], An
     atomic_write_bytes(path, dumps_json(obj, default=default).encode())
 
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "dumps_json", "finite_or_null"]
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "dumps_json", "finite_or_null"]

@@ -8,6 +8,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from crowdrl.files import atomic_write_bytes, atomic_write_with
+
 
 class ScalarLog:
     """Append-only scalar log with one JSON line per row (``scalars.jsonl``), fsynced per row.
@@ -43,9 +45,7 @@ class ScalarLog:
         self._f.close()
         rows = self.rows()
         kept = [r for r in rows if r.get("frames", 0) <= frames]
-        tmp = self.path.with_suffix(".jsonl.tmp")
-        tmp.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in kept), encoding="utf-8")
-        os.replace(tmp, self.path)
+        atomic_write_bytes(self.path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in kept).encode())
         self._f = open(self.path, "a", encoding="utf-8")
         return len(rows) - len(kept)
 
@@ -55,13 +55,14 @@ class ScalarLog:
         first = [c for c in ("kind", "frames", "updates", "episodes") if c in columns]
         columns = first + [c for c in columns if c not in first]
         path = self.dir / "scalars.csv"
-        tmp = path.with_suffix(".csv.tmp")
-        with open(tmp, "w", newline="", encoding="utf-8") as f:
-            writer = csv.DictWriter(f, fieldnames=columns)
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, path)
-        return path
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "w", newline="", encoding="utf-8") as f:
+                writer = csv.DictWriter(f, fieldnames=columns)
+                writer.writeheader()
+                writer.writerows(rows)
+
+        return atomic_write_with(path, write)
 
     def close(self) -> None:
         if not self._f.closed:

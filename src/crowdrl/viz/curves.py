@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+
+from crowdrl.files import atomic_write_with
 
 
 def plot_learning_curves(rows: list[dict[str, Any]], path: Path | str, *, title: str | None = None) -> Path:
@@ -33,10 +34,6 @@ def plot_learning_curves(rows: list[dict[str, Any]], path: Path | str, *, title:
         ax.set_title(title)
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=110)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=110), suffix=path.suffix)
 
 

@@ -3,7 +3,6 @@ table's interval plot."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -12,6 +11,8 @@ from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
+
+from crowdrl.files import atomic_write_with
 
 PAPER_SMOOTHING = 0.99  # the paper's exponential smoothing of training curves
 
@@ -51,11 +52,7 @@ def seed_band(curves: list[tuple[np.ndarray, np.ndarray]], grid: np.ndarray) -> 
 
 def _save(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=dpi)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_with(path, lambda tmp: fig.savefig(tmp, dpi=dpi), suffix=path.suffix)
 
 
 def plot_seed_curves(runs: dict[str, list[list[dict[str, Any]]]], path: Path | str, *,

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-import uuid
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from matplotlib import colormaps
@@ -27,6 +25,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Polygon
 
 from crowdrl.evaluation.trajectory import Trajectory
+from crowdrl.files import atomic_write_with
 
 __all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "TIME_STAMP_GID",
            "OBSTACLE_GID"]
@@ -93,25 +92,6 @@ def _set_limits(ax: Axes, traj: Trajectory, include_human_goals: bool = False) -
 def _title(traj: Trajectory, title: str | None) -> str | None:
     parts = [p for p in (title, f"outcome: {traj.outcome}" if traj.outcome else None) if p]
     return " | ".join(parts) if parts else None
-
-
-def _atomic_write(path: Path, suffix: str, write: Callable[[str], None]) -> Path:
-    """Write through ``write(tmp_name)`` to a temp file beside ``path``, then rename over it,
-    so readers never see a half-written image."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # A unique name rather than tempfile.mkstemp, whose 0600 mode would carry over to the
-    # final file; this one is created by the writer with the usual umask-derived mode.
-    tmp = str(path.parent / f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
 
 
 def _heading_segment(center: np.ndarray, heading: float, radius: float) -> np.ndarray:
@@ -199,7 +179,7 @@ def plot_side_by_side(trajs: list[Trajectory], titles: list[str], path: PathLike
     if suptitle:
         fig.suptitle(suptitle)
     if path is not None:
-        _atomic_write(Path(path), ".png", lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+        atomic_write_with(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), suffix=".png")
     return fig
 
 
@@ -220,7 +200,7 @@ def plot_trajectory(
         ax.set_title(full_title)
 
     if path is not None:
-        _atomic_write(Path(path), ".png", lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+        atomic_write_with(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120), suffix=".png")
     return fig
 
 
@@ -367,4 +347,4 @@ def animate_trajectory(
                 update(k)
                 writer.grab_frame()
 
-    return _atomic_write(out, ".gif", write)
+    return atomic_write_with(out, write, suffix=".gif")
