@@ -67,6 +67,7 @@ from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim import crowd
 from crowdrl.sim.config import OBSTACLE_SCENARIOS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, unicycle_step
+from crowdrl.sim.obstacles import process_obstacles, put_edges
 from crowdrl.sim.rng import episode_keys
 from crowdrl.sim.scenarios import initial_states
 from crowdrl.sim.state import CrowdState
@@ -104,6 +105,9 @@ def orca_backend(backend: str) -> str:
 # ----------------------------------------------------------------------------- batched core
 def bench_core(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, step_fn, max_seconds: float) -> dict:
     state = initial_states(cfg, episode_keys("train", seed, torch.arange(B)))
+    # the obstacles' processed edges, kept as the env keeps them (fixed per episode; re-spawned
+    # episodes' edges are processed with their state, in the timed reset)
+    edges = process_obstacles(state.obstacles, state.obstacle_mask) if state.has_obstacles else None
     next_id = B
     table = action_table(cfg.robot_v_pref)
     gen = torch.Generator().manual_seed(seed)
@@ -111,11 +115,11 @@ def bench_core(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, ste
     resets = 0
 
     def one() -> None:
-        nonlocal state, next_id, reset_time, resets
+        nonlocal state, edges, next_id, reset_time, resets
         action = torch.randint(0, NUM_ACTIONS, (B,), generator=gen)
         speed_rot = table[action]
         heading, velocity = unicycle_step(state.robot_heading, speed_rot[:, 0], speed_rot[:, 1])
-        state, res = step_fn(cfg, state, velocity, heading)
+        state, res = step_fn(cfg, state, velocity, heading, obstacle_edges=edges)
         done = res.terminated | res.truncated
         if bool(done.any()):
             t0 = time.perf_counter()
@@ -125,6 +129,8 @@ def bench_core(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, ste
             next_id += k
             for f in dataclasses.fields(state):
                 getattr(state, f.name)[idx] = getattr(fresh, f.name)
+            if edges is not None:
+                edges = put_edges(edges, idx, process_obstacles(fresh.obstacles, fresh.obstacle_mask))
             reset_time += time.perf_counter() - t0
             resets += k
 

@@ -485,7 +485,15 @@ def _obstacle_initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch
     humans = torch.arange(N, device=device)
     # the direction of each human (room: of x, as in square; corridor and doorway: of y), drawn in round
     # 0; in corridor and doorway humans alternate directions from human 0's draw
-    side_draw = _spawn_uniforms(spawn_key, humans, 0, 1, range(7, 8), dtype)[:, :, 0, 0]  # [B, N]
+    # Small batches: the first rounds of every human in one draw [B, N, R0, 8] (the same uniforms as
+    # per-human draws), as per-human draws would cost more in call overhead than in arithmetic.
+    first_rounds = min(_OBSTACLE_CHUNK, _FIRST_DRAWS // max(B * N * _SPAWN_COMPONENTS, 1))
+    chunk0 = None
+    if first_rounds >= _OBSTACLE_CHUNK // 2:
+        chunk0 = _spawn_uniforms(spawn_key, humans, 0, first_rounds, range(_SPAWN_COMPONENTS), dtype)
+        side_draw = chunk0[:, :, 0, 7]
+    else:
+        side_draw = _spawn_uniforms(spawn_key, humans, 0, 1, range(7, 8), dtype)[:, :, 0, 0]  # [B, N]
     if cfg.scenario != "room":
         side_draw = side_draw[:, :1].expand(B, N)
     for h in range(N):
@@ -500,8 +508,11 @@ def _obstacle_initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch
                     f"in {episodes.numel()} episode(s) after {SPAWN_ROUNDS} rejection rounds, clear of the other "
                     "agents and of the obstacles with a clear straight path; use fewer humans or roomier obstacles")
             A = episodes.numel()
-            rounds = min(_OBSTACLE_CHUNK, _chunk_rounds(A, h + 1, rate, SPAWN_ROUNDS - first))
-            u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, range(_SPAWN_COMPONENTS), dtype)  # [A, R, 8]
+            if first == 0 and chunk0 is not None:
+                rounds, u = first_rounds, chunk0[episodes, h]
+            else:
+                rounds = min(_OBSTACLE_CHUNK, _chunk_rounds(A, h + 1, rate, SPAWN_ROUNDS - first))
+                u = _spawn_uniforms(spawn_key[episodes], h, first, rounds, range(_SPAWN_COMPONENTS), dtype)  # [A, R, 8]
             side = torch.where(side_draw_h[episodes] > 0.5, -1.0, 1.0).to(dtype).unsqueeze(-1)  # [A, 1]
             if cfg.scenario != "room":  # corridor, doorway: alternate, half the crowd each way
                 side = side * (1.0 - 2.0 * (h % 2))
