@@ -25,10 +25,10 @@ from crowdrl.exploration.dropout import (
     acting,
     add_action_dropout,
     dropout_layers,
-    dropout_schedule,
     set_acting,
     set_dropout_p,
 )
+from crowdrl.exploration.schedule import linear_schedule
 from crowdrl.exploration.noisy import (
     FactorisedNoisyLinear,
     noise_disabled,
@@ -288,16 +288,13 @@ def test_set_dropout_p_and_bad_p():
         set_acting(net, 1)
 
 
-def test_dropout_schedule():
-    assert dropout_schedule(0, duration_frames=100) == pytest.approx(0.5)
-    assert dropout_schedule(50, duration_frames=100) == pytest.approx(0.255)
-    assert dropout_schedule(100, duration_frames=100) == pytest.approx(0.01)
-    assert dropout_schedule(10**6, duration_frames=100) == pytest.approx(0.01)
-    assert dropout_schedule(-5, 0.4, 0.1, duration_frames=10) == pytest.approx(0.4)
-    with pytest.raises(ValueError, match="duration_frames"):
-        dropout_schedule(0, duration_frames=0)
-    with pytest.raises(ValueError, match="p="):
-        dropout_schedule(0, start=1.2, duration_frames=10)
+def test_dropout_p_follows_the_shared_linear_schedule():
+    """The trainer anneals dropout p with the same linear schedule as ε (0.5 -> 0.01 by default)."""
+    assert linear_schedule(0.5, 0.01, 100, 0) == pytest.approx(0.5)
+    assert linear_schedule(0.5, 0.01, 100, 50) == pytest.approx(0.255)
+    assert linear_schedule(0.5, 0.01, 100, 100) == pytest.approx(0.01)
+    assert linear_schedule(0.5, 0.01, 100, 10**6) == pytest.approx(0.01)
+    assert linear_schedule(0.4, 0.1, 10, -5) == pytest.approx(0.4)   # never beyond start
 
 
 def test_dqn_loss_is_deterministic_with_dropout():

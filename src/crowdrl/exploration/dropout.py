@@ -129,25 +129,11 @@ def acting(module: nn.Module, flag: bool = True) -> Iterator[nn.Module]:
             layer.acting = prev
 
 
-def dropout_schedule(frame: int, start: float = 0.5, end: float = 0.01, *, duration_frames: int) -> float:
-    """``start`` -> ``end`` linearly over ``duration_frames`` collected frames, then ``end``.
-
-    Upstream's 7000 episodes are frames here (``docs/mdp.md``, "Exploration variants"): pass the
-    frame count the trainer uses for its ε schedule (``exploration.anneal_frames``-like), so all
-    variants decay on the same clock.
-    """
-    _check_p(start), _check_p(end)
-    if duration_frames < 1:
-        raise ValueError(f"duration_frames must be >= 1, got duration_frames={duration_frames}")
-    return end + (start - end) * min(1.0, max(0.0, 1.0 - frame / duration_frames))
-
-
 __all__ = [
     "ScheduledDropout",
     "acting",
     "add_action_dropout",
     "dropout_layers",
-    "dropout_schedule",
     "set_acting",
     "set_dropout_p",
 ]

@@ -17,8 +17,11 @@ Schedule = Union[float, Callable[[], float]]
 
 
 def linear_schedule(start: float, end: float, duration: int, t: int) -> float:
-    """``start`` → ``end`` linearly over ``duration`` steps, then ``end``."""
-    return end + (start - end) * max(0.0, 1.0 - t / duration)
+    """``start`` → ``end`` linearly over ``duration`` steps, then ``end`` (``start`` before step 0).
+
+    The trainer's ε and dropout-p schedules (over collected frames) and ``make_schedule("linear")``.
+    """
+    return end + (start - end) * min(1.0, max(0.0, 1.0 - t / duration))
 
 
 def exp_schedule(start: float, decay: float, t: int) -> float:

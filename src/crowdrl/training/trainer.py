@@ -444,4 +444,4 @@ def _progress(enabled: bool, total: int, initial: int):
     return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 
 
-__all__ = ["Trainer", "NonFiniteError", "linear_schedule", "CheckpointError"]
+__all__ = ["Trainer", "NonFiniteError", "CheckpointError"]
