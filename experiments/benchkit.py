@@ -23,9 +23,11 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+from crowdrl.tables import markdown_table
 
 JSON_HELP = 'print one JSON object {"meta": ..., "rows": [...]} on stdout instead of a table (progress on stderr)'
 
@@ -88,17 +90,8 @@ def _numeric(value: Any) -> bool:
 def table(rows: Sequence[dict], columns: Sequence[Column | str]) -> str:
     """An aligned Markdown table of ``rows``; a numeric column is right-aligned."""
     cols = [c if isinstance(c, Column) else Column(c) for c in columns]
-    escape = lambda text: text.replace("|", "\\|")  # noqa: E731  (a | inside a cell would end it)
-    cells = [[escape(c.cell(r)) for c in cols] for r in rows]
-    heads = [escape(c.title()) for c in cols]
     right = [any(_numeric(c.value(r)) for r in rows) for c in cols]
-    widths = [max([len(h), 3] + [len(line[i]) for line in cells]) for i, h in enumerate(heads)]
-
-    def line(texts: Iterable[str]) -> str:
-        return "| " + " | ".join(t.rjust(w) if r else t.ljust(w) for t, w, r in zip(texts, widths, right)) + " |"
-
-    rule = "|" + "|".join(("-" * (w + 1) + ":") if r else ("-" * (w + 2)) for w, r in zip(widths, right)) + "|"
-    return "\n".join([line(heads), rule, *(line(c) for c in cells)])
+    return markdown_table([c.title() for c in cols], ([c.cell(r) for c in cols] for r in rows), right=right, pad=True)
 
 
 def emit(rows: Sequence[dict], *, columns: Sequence[Column | str], title: str, meta: dict | None = None,

@@ -30,6 +30,7 @@ from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
 from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.sim.config import SCENARIOS
+from crowdrl.tables import markdown_table
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
@@ -110,13 +111,11 @@ def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last
         lines[-1:] = [f"Validation episodes only (the runs' scalars.jsonl): rates over each run's last {last} "
                       f"validations ({last} x 100 episodes at the end of training), and its best validation.", ""]
     for scenario in scenarios:
-        lines += [f"## {scenario}", "", "| group | seeds | " + " | ".join(h for _, h, _ in metrics) + " | P(improve) |",
-                  "|---|---|" + "---|" * (len(metrics) + 1)]
-        for r in (r for r in rows if r["scenario"] == scenario):
-            p = f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
-            lines.append(f"| {r['group']} | {r['seeds']} | " + " | ".join(cell(r, k, d) for k, _, d in metrics)
-                         + f" | {p} |")
-        lines.append("")
+        cells = [[r["group"], r["seeds"], *(cell(r, k, d) for k, _, d in metrics),
+                  f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"]
+                 for r in rows if r["scenario"] == scenario]
+        lines += [f"## {scenario}", "",
+                  markdown_table(["group", "seeds", *(h for _, h, _ in metrics), "P(improve)"], cells), ""]
     return "\n".join(lines)
 
 

@@ -25,6 +25,7 @@ import torch
 from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.training.pipeline import evaluate_spec
+from crowdrl.tables import markdown_table
 
 METRICS = ("success_rate", "collision_rate", "timeout_rate", "navigation_time", "average_return")
 
@@ -76,13 +77,10 @@ def markdown(table: dict, sizes: list[int], scenario: str, episodes: int, seed: 
     lines = [f"# Crowd-size generalisation on {scenario} ({episodes} test cases of test seed {seed} per size)", "",
              "Cells: mean over seeds [min, max over seeds]; ORCA is deterministic (one evaluation).", ""]
     for metric, digits in (("success_rate", 3), ("collision_rate", 3), ("navigation_time", 2), ("average_return", 4)):
+        rows = [[label, by_size[str(sizes[0])]["seeds"], *(fmt(by_size[str(n)][metric], digits) for n in sizes)]
+                for label, by_size in table.items()]
         lines += [f"## {metric.replace('_', ' ')}", "",
-                  "| policy | seeds | " + " | ".join(f"{n} humans" for n in sizes) + " |",
-                  "|---|---|" + "---|" * len(sizes)]
-        for label, by_size in table.items():
-            seeds = by_size[str(sizes[0])]["seeds"]
-            lines.append(f"| {label} | {seeds} | " + " | ".join(fmt(by_size[str(n)][metric], digits) for n in sizes) + " |")
-        lines.append("")
+                  markdown_table(["policy", "seeds", *(f"{n} humans" for n in sizes)], rows), ""]
     return "\n".join(lines)
 
 

@@ -27,6 +27,7 @@ import gym_intrinsic  # noqa: E402
 
 from crowdrl.evaluation.stats import mean_interval  # noqa: E402
 from crowdrl.files import atomic_write_bytes, atomic_write_json  # noqa: E402
+from crowdrl.tables import markdown_table  # noqa: E402
 
 STABLE = ["--reward-norm", "batch", "--center", "--clip", "5", "--obs-norm"]
 ARMS = {
@@ -49,9 +50,8 @@ def run_arm(arm: str, seed: int, env: str, frames: int, beta: float) -> dict:
 
 def table(records: dict[str, list[dict]], reps: int) -> str:
     lines = ["Mean over seeds [95 % bootstrap CI, rliable]; a seed that never reached the goal counts "
-             "its episodes to the first goal as the number of episodes it ran (a lower bound).", "",
-             "| arm | seeds | " + " | ".join(h for _, h, _ in COLUMNS) + " | wall per run (s) |",
-             "|---|---|" + "---|" * (len(COLUMNS) + 1)]
+             "its episodes to the first goal as the number of episodes it ran (a lower bound).", ""]
+    rows = []
     for arm, recs in records.items():
         cells = []
         for key, _, digits in COLUMNS:
@@ -60,7 +60,8 @@ def table(records: dict[str, list[dict]], reps: int) -> str:
             mean, lo, hi = mean_interval({arm: values}, reps=reps)[arm]
             cells.append(f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]" if len(recs) > 1 else f"{mean:.{digits}f}")
         wall = sum(r["wall_s"] for r in recs) / len(recs)
-        lines.append(f"| {arm} | {len(recs)} | " + " | ".join(cells) + f" | {wall:.0f} |")
+        rows.append([arm, len(recs), *cells, f"{wall:.0f}"])
+    lines.append(markdown_table(["arm", "seeds", *(h for _, h, _ in COLUMNS), "wall per run (s)"], rows))
     return "\n".join(lines) + "\n"
 
 

@@ -18,6 +18,7 @@ DOCUMENTED = {
     "crowdrl.exploration.re3": "RE3",
     "crowdrl.policies.planning": "OnlinePlanner",
     "crowdrl.sim.lidar": "lidar_scan",
+    "crowdrl.tables": "markdown_table",
     "crowdrl.training.config": "RunConfig",
     "crowdrl.training.trainer": "Trainer",
 }

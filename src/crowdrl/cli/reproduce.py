@@ -41,6 +41,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.resources import config_dir
+from crowdrl.tables import markdown_table
 
 os.environ.setdefault("WANDB_MODE", "offline")
 
@@ -376,6 +377,13 @@ def _cell(row: dict[str, Any], key: str, digits: int) -> str:
     return text
 
 
+TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg return", "P(improve on ε-greedy)")
+
+
+def _p_improve(r: dict[str, Any]) -> str:
+    return f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
+
+
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
     from crowdrl.sim.config import OPEN_SCENARIOS
 
@@ -406,15 +414,10 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
                   f"{wall_s / 60:.1f} min."]
     lines.append("")
     for scenario in plan.scenarios:
-        lines += [f"## {scenario}", "",
-                  "| method | seeds | success | collision | nav time (s) | avg return | P(improve on ε-greedy) |",
-                  "|---|---|---|---|---|---|---|"]
-        for r in (r for r in rows if r["scenario"] == scenario):
-            p = f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
-            lines.append(f"| {r['method']} | {r['seeds']} | {_cell(r, 'success_rate', 3)} | "
-                         f"{_cell(r, 'collision_rate', 3)} | {_cell(r, 'navigation_time', 2)} | "
-                         f"{_cell(r, 'average_return', 4)} | {p} |")
-        lines.append("")
+        cells = [[r["method"], r["seeds"], _cell(r, "success_rate", 3), _cell(r, "collision_rate", 3),
+                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), _p_improve(r)]
+                 for r in rows if r["scenario"] == scenario]
+        lines += [f"## {scenario}", "", markdown_table(TABLE_HEADER, cells), ""]
     return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Any, Iterable
 
+from crowdrl import tables
 from crowdrl.evaluation.metrics import EpisodeMetrics
 from crowdrl.files import atomic_write_bytes, atomic_write_json
 
@@ -85,13 +86,9 @@ def _fmt(value: Any) -> str:
 
 def markdown_table(records: Iterable[dict[str, Any]], label_keys: tuple[str, ...] = ("policy", "scenario")) -> str:
     """One row per record: its labels, then the seven metrics."""
-    records = list(records)
     head = [*label_keys, *(HEADERS[k] for k in REPORT_FIELDS)]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in records:
-        lines.append("| " + " | ".join([*(str(r.get(k, "")) for k in label_keys),
-                                          *(_fmt(r[k]) for k in REPORT_FIELDS)]) + " |")
-    return "\n".join(lines)
+    return tables.markdown_table(head, ([*(str(r.get(k, "")) for k in label_keys), *(_fmt(r[k]) for k in REPORT_FIELDS)]
+                                        for r in records))
 
 
 def write_records(folder: Path | str, records: list[dict[str, Any]], stem: str = "eval") -> tuple[Path, Path]:

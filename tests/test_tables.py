@@ -1,0 +1,25 @@
+"""The one Markdown table writer: escaping, alignment and mismatched rows."""
+
+import pytest
+
+from crowdrl.tables import markdown_table
+
+
+def test_cells_are_stringified_and_pipes_escaped():
+    text = markdown_table(["a|b", "n"], [["x|y", 3], ["z", 0.5]])
+    assert text.splitlines() == ["| a\\|b | n |", "|---|---|", "| x\\|y | 3 |", "| z | 0.5 |"]
+
+
+def test_padded_columns_line_up_and_right_alignment_marks_the_rule():
+    lines = markdown_table(["name", "sps"], [["circle", "43,602"], ["doorway", "7"]], right=[False, True], pad=True).splitlines()
+    assert len({len(line) for line in lines}) == 1  # every line the same width
+    assert lines[1] == "|---------|-------:|"
+    assert lines[3] == "| doorway |      7 |"
+    assert markdown_table(["a"], [], right=[True]).splitlines() == ["| a |", "|---:|"]
+
+
+@pytest.mark.parametrize("kwargs, match", [({"rows": [["1", "2", "3"]]}, "row 0 has 3 cells"),
+                                           ({"rows": [], "right": [True]}, "right has 1 entries")])
+def test_shape_errors_name_what_is_wrong(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        markdown_table(["a", "b"], **kwargs)
