@@ -1,6 +1,4 @@
-"""Markdown tables: the one writer behind every table crowdrl prints or records.
-
-"""
+"""Markdown tables: the one writer behind every table crowdrl prints or records."""
 
 from __future__ import annotations
 
