@@ -195,7 +195,7 @@ def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | Non
     def build(index: int, ep_seed: int) -> ReferenceCrowdSim:
         sim = ReferenceCrowdSim.from_state(cfg, pool, index, seed=ep_seed)
         if cfg.scenario == "doorway":  # time the waypoint rule (crowd.preferred_velocities on tensors)
-            inner = sim._preferred_velocities
+            inner = sim.preferred_velocities
 
             def timed():
                 nonlocal waypoint_time
@@ -203,7 +203,7 @@ def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | Non
                 out = inner()
                 waypoint_time += time.perf_counter() - t
                 return out
-            sim._preferred_velocities = timed
+            sim.preferred_velocities = timed
         return sim
 
     for _ in range(3):  # short runs on a shared machine: the median of three

@@ -23,7 +23,7 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
   :class:`~crowdrl.sim.obstacles.ObstacleEdges`) are packed ``[F, E, B]``; the graph finds each
   agent's obstacle neighbours and their kd-tree visiting order, ranks them (no sort), selects them
   into ``O`` static slots (:data:`OBSTACLE_SLOTS`, grown and recompiled when an agent has more),
-  builds their lines with the eager path's :func:`~crowdrl.sim.orca._obstacle_line_math`, applies
+  builds their lines with the eager path's :func:`~crowdrl.sim.orca.obstacle_line_math`, applies
   the "already covered" rule and puts the kept lines first, hard in ``linearProgram3``.
 * **The rare 3-D fallback apart.** ``linearProgram3`` (``O(K^3)`` work) runs in a second compiled
   graph over only the agents whose 2-D program failed (gathered eagerly, padded to a multiple
@@ -60,9 +60,9 @@ from crowdrl.sim.obstacles import ObstacleEdges
 from crowdrl.sim.orca import (
     RVO_EPSILON,
     OrcaSolution,
-    _check_inputs,
-    _line_math,
-    _obstacle_line_math,
+    check_orca_inputs,
+    agent_line_math,
+    obstacle_line_math,
     prepare_obstacles,
 )
 
@@ -210,7 +210,7 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
             o_vx = select([VX[j] for j in range(N)], s)
             o_vy = select([VY[j] for j in range(N)], s)
             o_r = select([R[j] for j in range(N)], s)
-            dx, dy, qx, qy = _line_math(px, py, VX - o_vx, VY - o_vy, R + o_r, VX, VY, inv_th, inv_ts, torch.where)
+            dx, dy, qx, qy = agent_line_math(px, py, VX - o_vx, VY - o_vy, R + o_r, VX, VY, inv_th, inv_ts, torch.where)
             dxs.append(dx)
             dys.append(dy)
             qxs.append(qx)
@@ -274,7 +274,7 @@ def _build(N: int, K: int, dtype: torch.dtype, time_step: float, neighbor_dist: 
                 sel.append(out)
             ax, ay, bx, by, ux, uy, pvx, pvy, nvx, nvy, c1, c2, found = sel
             r1x, r1y, r2x, r2y = ax - X, ay - Y, bx - X, by - Y
-            dx, dy, qx, qy, has = _obstacle_line_math(
+            dx, dy, qx, qy, has = obstacle_line_math(
                 r1x, r1y, r2x, r2y, bx - ax, by - ay, ux, uy, pvx, pvy, nvx, nvy, c1, c2, VX, VY, R, inv_tho,
                 torch.where, torch.sqrt)
             kept = has & found
@@ -465,7 +465,7 @@ def compiled_orca_solve(
     :data:`OBSTACLE_SLOTS`; a call where an agent has more obstacle neighbours is computed again with
     more slots (one more compilation), kept for that configuration from then on.
     """
-    _check_inputs(
+    check_orca_inputs(
         positions, velocities, pref_velocities, radius, max_speed, mask,
         time_step, neighbor_dist, max_neighbors, time_horizon,
     )

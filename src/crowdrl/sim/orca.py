@@ -115,7 +115,7 @@ def require_finite(**tensors: Tensor) -> None:
     raise ValueError(f"{name} holds NaN or infinite values; the simulator takes finite inputs only")
 
 
-def _check_inputs(
+def check_orca_inputs(
     positions: Tensor,
     velocities: Tensor,
     pref_velocities: Tensor,
@@ -127,6 +127,9 @@ def _check_inputs(
     max_neighbors: int,
     time_horizon: float,
 ) -> None:
+    """Refuse what :func:`orca_solve` and the compiled path cannot take, naming the argument: wrong
+    shapes, devices or dtypes (``TypeError``), a non-positive time step or horizon, a negative
+    neighbour distance or count, non-finite values."""
     if positions.dim() != 3 or positions.shape[-1] != 2:
         raise ValueError(f"positions must be shaped [B, N, 2], got {tuple(positions.shape)}")
     if not positions.is_floating_point():
@@ -193,7 +196,7 @@ def _neighbor_table(
     return flat, valid
 
 
-def _line_math(px, py, vx, vy, comb_r, own_vx, own_vy, inv_th, inv_ts, where=_select, sqrt=_sqrt):
+def agent_line_math(px, py, vx, vy, comb_r, own_vx, own_vy, inv_th, inv_ts, where=_select, sqrt=_sqrt):
     """ORCA half-plane ``(dir_x, dir_y, point_x, point_y)`` from the neighbour's relative
     position ``p``, relative velocity ``v = v_self - v_other`` and combined radius, elementwise
     (RVO2's ``computeNewVelocity`` without obstacles)."""
@@ -244,7 +247,7 @@ def _lines_t(
     own = torch.cat((positions.reshape(A, 2).t(), velocities.reshape(A, 2).t(), radius.reshape(1, A)), 0)
     other = own.index_select(1, flat.reshape(-1)).view(5, K, A)
     one = torch.ones((), dtype=positions.dtype, device=positions.device)
-    return _line_math(
+    return agent_line_math(
         other[0] - own[0], other[1] - own[1], own[2] - other[2], own[3] - other[3], own[4] + other[4],
         own[2], own[3], one / time_horizon, one / time_step,
     )
@@ -307,8 +310,8 @@ def _obstacle_neighbor_table(
     return visit.gather(0, by_dist[:O]), torch.isfinite(sorted_d[:O])
 
 
-def _obstacle_line_math(r1x, r1y, r2x, r2y, ex, ey, ux, uy, pvx, pvy, nvx, nvy, convex1, convex2,
-                        vx, vy, radius, inv_tho, where=_select, sqrt=_sqrt):
+def obstacle_line_math(r1x, r1y, r2x, r2y, ex, ey, ux, uy, pvx, pvy, nvx, nvy, convex1, convex2,
+                       vx, vy, radius, inv_tho, where=_select, sqrt=_sqrt):
     """ORCA half-plane ``(dir_x, dir_y, point_x, point_y)`` of an obstacle edge, elementwise, and
     whether RVO2 adds one (RVO2's ``computeNewVelocity``, obstacle part, before the
     "already covered" test).
@@ -424,7 +427,7 @@ def _obstacle_lines_t(
     one = torch.ones((), dtype=positions.dtype, device=positions.device)
     inv_tho = one / time_horizon_obst
     rad = radius.reshape(A)
-    dx, dy, qx, qy, has = _obstacle_line_math(
+    dx, dy, qx, qy, has = obstacle_line_math(
         r1x, r1y, r2x, r2y, b[0] - a[0], b[1] - a[1], u[0], u[1], pv[0], pv[1], nv[0], nv[1],
         take(edges.start_convex), take(edges.end_convex), vel[0], vel[1], rad, inv_tho,
     )
@@ -613,7 +616,7 @@ def orca_solve(
     time_horizon_obst: float | None = None,
 ) -> OrcaSolution:
     """ORCA new velocities with diagnostics; see :func:`orca_velocities` for the arguments."""
-    _check_inputs(
+    check_orca_inputs(
         positions, velocities, pref_velocities, radius, max_speed, mask,
         time_step, neighbor_dist, max_neighbors, time_horizon,
     )

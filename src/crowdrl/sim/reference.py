@@ -276,7 +276,7 @@ class ReferenceCrowdSim:
         return self.robot_velocity.copy(), self.human_velocity.copy()
 
     # ------------------------------------------------------------------- step
-    def _preferred_velocities(self) -> np.ndarray:
+    def preferred_velocities(self) -> np.ndarray:
         """``doorway``: the humans' preferred velocities ``[N, 2]`` (through the gap), by the batched
         simulator's pure function on this episode's arrays."""
         import torch  # noqa: PLC0415 - only the doorway needs it
@@ -288,7 +288,7 @@ class ReferenceCrowdSim:
 
     def _human_velocities(self) -> np.ndarray:
         sim = self._rvo
-        pref = self._preferred_velocities() if self._waypoints else None
+        pref = self.preferred_velocities() if self._waypoints else None
         for i in range(self.num_humans):
             px, py = float(self.human_position[i, 0]), float(self.human_position[i, 1])
             if pref is not None:

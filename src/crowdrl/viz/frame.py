@@ -13,7 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from crowdrl.viz.trajectory import GOAL_COLOR, ROBOT_COLOR, _heading_segment, _human_colors, draw_obstacles
+from crowdrl.viz.trajectory import GOAL_COLOR, ROBOT_COLOR, heading_segment, human_colors, draw_obstacles
 
 __all__ = ["render_frame"]
 
@@ -61,13 +61,13 @@ def render_frame(
     ax.set_yticks([])
     ax.grid(False)
     draw_obstacles(ax, [np.asarray(p, dtype=np.float64) for p in obstacles])
-    for h, (xy, color) in enumerate(zip(humans, _human_colors(len(humans)))):
+    for h, (xy, color) in enumerate(zip(humans, human_colors(len(humans)))):
         ax.add_patch(Circle(xy, human_radius, facecolor=(*color[:3], 0.35), edgecolor=color, lw=1.5))
         ax.text(*xy, str(h), fontsize=7, ha="center", va="center")
     ax.add_patch(Circle(robot_position, robot_radius, facecolor=(0.0, 0.0, 0.0, 0.25),
                         edgecolor=ROBOT_COLOR, lw=2.0, zorder=5))
     if robot_heading is not None:
-        seg = _heading_segment(robot_position, float(robot_heading), robot_radius)
+        seg = heading_segment(robot_position, float(robot_heading), robot_radius)
         ax.plot(seg[:, 0], seg[:, 1], color=ROBOT_COLOR, lw=1.5, zorder=5.5)
     ax.plot(*robot_goal, marker="*", ms=14, color=GOAL_COLOR, mec="black", mew=0.8, ls="none", zorder=6)
     if title:

@@ -63,7 +63,7 @@ def _stamp_indices(traj: Trajectory, period_s: float = STAMP_PERIOD_S) -> list[i
     return idx
 
 
-def _human_colors(n: int) -> list[tuple[float, float, float, float]]:
+def human_colors(n: int) -> list[tuple[float, float, float, float]]:
     """Qualitative colours, one per human (tab10, tab20 beyond 10 humans, cycling after)."""
     cmap = colormaps["tab10" if n <= 10 else "tab20"]
     k = cmap.N
@@ -94,7 +94,8 @@ def _title(traj: Trajectory, title: str | None) -> str | None:
     return " | ".join(parts) if parts else None
 
 
-def _heading_segment(center: np.ndarray, heading: float, radius: float) -> np.ndarray:
+def heading_segment(center: np.ndarray, heading: float, radius: float) -> np.ndarray:
+    """The ``[2, 2]`` segment from ``center`` to the rim of a disc of ``radius`` along ``heading`` (the robot's heading mark)."""
     return np.array([center, center + radius * np.array([math.cos(heading), math.sin(heading)])])
 
 
@@ -116,7 +117,7 @@ def draw_obstacles(ax: Axes, polygons) -> None:
 def _draw_episode(ax: Axes, traj: Trajectory) -> None:
     """Obstacles, paths, time-stamped circles, headings and the goal of one episode on ``ax``."""
     draw_obstacles(ax, traj.obstacles)
-    colors = _human_colors(traj.num_humans)
+    colors = human_colors(traj.num_humans)
     stamps = _stamp_indices(traj)
 
     def draw_agent(xy: np.ndarray, radius: float, color, zorder: float) -> None:
@@ -139,7 +140,7 @@ def _draw_episode(ax: Axes, traj: Trajectory) -> None:
     draw_agent(rxy, traj.robot_radius, ROBOT_COLOR, zorder=6)
     if traj.robot_headings is not None:
         for i in stamps:
-            seg = _heading_segment(rxy[i], traj.robot_headings[i], traj.robot_radius)
+            seg = heading_segment(rxy[i], traj.robot_headings[i], traj.robot_radius)
             ax.plot(seg[:, 0], seg[:, 1], color=ROBOT_COLOR, lw=1.0, zorder=6.1)
     ax.plot(*traj.robot_goal, marker="*", ms=16, color=GOAL_COLOR, mec="black", mew=0.8,
             ls="none", zorder=7)
@@ -274,7 +275,7 @@ def animate_trajectory(
 
     fig = _new_figure((6.0, 6.0))
     ax = fig.add_subplot()
-    colors = _human_colors(traj.num_humans)
+    colors = human_colors(traj.num_humans)
     _set_limits(ax, traj, include_human_goals=show_human_goals)
     draw_obstacles(ax, traj.obstacles)  # static: part of the frozen background
     ax.set_xlabel("x (m)")
@@ -329,8 +330,7 @@ def animate_trajectory(
             circ.set_center(traj.human_positions[k, h])
         robot_circle.set_center(traj.robot_positions[k])
         if heading_line is not None:
-            seg = _heading_segment(traj.robot_positions[k], traj.robot_headings[k],
-                                   traj.robot_radius)
+            seg = heading_segment(traj.robot_positions[k], traj.robot_headings[k], traj.robot_radius)
             heading_line.set_data(seg[:, 0], seg[:, 1])
         if goal_markers is not None:
             goal_markers.set_offsets(traj.human_goals[k])
