@@ -1,100 +1,11 @@
-"""Run an exported crowdrl policy with numpy and onnxruntime only (no torch, no crowdrl).
+"""Checkout shortcut for ``src/crowdrl/onnx_example.py``: runs it by its path, so that, like the file
+itself, it needs numpy and onnxruntime only (no torch, no crowdrl). See that file for what it does.
 
-    python experiments/export.py checkpoint=runs/<folder> out=policy.onnx
-    python experiments/onnx_example.py policy.onnx
-
-Builds the observation of one robot among a few humans from world-frame states, in the robot's
-goal-aligned frame (the transform of ``crowdrl.envs.robot_centric.robot_centric``, written again
-in numpy below), runs the model and prints the greedy action, its command (speed, rotation) and
-the world-frame velocity the robot then drives at. Copy :func:`observation` into a robot's code.
+    python experiments/onnx_example.py policy.onnx [--json]
 """
 
-from __future__ import annotations
-
-import argparse
-import json
-import math
-import os
-
-import numpy as np
-
-
-def robot_centric(robot: np.ndarray, humans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World frame -> the robot's frame (origin at the robot, x towards its goal).
-
-    ``robot [..., 9]`` = (px, py, vx, vy, radius, gx, gy, v_pref, heading), ``humans [..., N, 5]`` =
-    (px, py, vx, vy, radius) -> ``robot_rc [..., 9]`` = (0, 0, vx', vy', radius, goal distance, 0,
-    v_pref, heading - goal direction wrapped to [-pi, pi)) and ``humans_rc [..., N, 5]`` = (px', py',
-    vx', vy', radius + robot radius), primes being rotated by minus the goal direction.
-    """
-    px, py, vx, vy, r, gx, gy, v_pref, theta = np.moveaxis(robot, -1, 0)
-    dgx, dgy = gx - px, gy - py
-    rot = np.arctan2(dgy, dgx)
-    c, s = np.cos(rot), np.sin(rot)
-    zero = np.zeros_like(px)
-    heading = np.remainder(theta - rot + math.pi, 2 * math.pi) - math.pi
-    robot_rc = np.stack((zero, zero, vx * c + vy * s, -vx * s + vy * c, r, np.sqrt(dgx * dgx + dgy * dgy), zero,
-                         v_pref, heading), axis=-1)
-    c, s = c[..., None], s[..., None]
-    hx, hy = humans[..., 0] - px[..., None], humans[..., 1] - py[..., None]
-    hvx, hvy = humans[..., 2], humans[..., 3]
-    humans_rc = np.stack((hx * c + hy * s, -hx * s + hy * c, hvx * c + hvy * s, -hvx * s + hvy * c,
-                          humans[..., 4] + r[..., None]), axis=-1)
-    return robot_rc, humans_rc
-
-
-def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
-    """The model's inputs for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame,
-    padded with absent rows (``humans_mask`` False) to ``slots`` rows when the model fixes N."""
-    robot_rc, humans_rc = robot_centric(np.asarray(robot, np.float64), np.asarray(humans, np.float64).reshape(-1, 5))
-    n = humans_rc.shape[0]
-    slots = n if slots is None else slots
-    if n > slots:
-        raise ValueError(f"the model takes at most {slots} humans, got {n}")
-    padded = np.zeros((slots, 5))
-    padded[:n] = humans_rc
-    mask = np.arange(slots) < n
-    return {"robot_rc": robot_rc[None].astype(np.float32), "humans_rc": padded[None].astype(np.float32),
-            "humans_mask": mask[None]}
-
-
-def main(argv: list[str] | None = None) -> dict:
-    import onnxruntime
-
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("model", help="the .onnx file written by experiments/export.py")
-    p.add_argument("--json", action="store_true", help="print the result as one JSON line")
-    args = p.parse_args(argv)
-    if not os.path.isfile(args.model):
-        p.error(f"model: no file at {args.model} (write one with experiments/export.py)")
-    session = onnxruntime.InferenceSession(args.model, providers=["CPUExecutionProvider"])
-    meta = session.get_modelmeta().custom_metadata_map
-    n_axis = {i.name: i.shape for i in session.get_inputs()}["humans_rc"][1]
-    slots = n_axis if isinstance(n_axis, int) else None  # an int: the model fixes N (pad); a name: free
-
-    # the robot at (0, -4) heading north towards its goal (0, 4), driving at 0.5 m/s; three humans
-    robot = np.array([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, math.pi / 2])
-    humans = np.array([[0.3, -2.5, 0.0, -0.8, 0.3],    # coming straight at it
-                       [-1.5, -1.0, 0.6, 0.0, 0.3],    # crossing from the left
-                       [2.0, 1.0, 0.0, 0.0, 0.3]])     # standing
-    q, action, command = session.run(["q_values", "action", "command"], observation(robot, humans, slots))
-    a = int(action[0])
-    speed, rotation = (float(x) for x in command[0])
-    heading = robot[8] + rotation  # the unicycle turns first, then drives straight for one step
-    result = {"action": a, "q": float(q[0, a]), "speed": speed, "rotation": rotation,
-              "angular_rate": rotation / float(meta.get("crowdrl.time_step", "0.25")),
-              "velocity_world": [speed * math.cos(heading), speed * math.sin(heading)],
-              "planning": meta.get("crowdrl.planning", "unknown")}
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(f"greedy action {a} (Q {result['q']:.4f}): speed {speed:.3f} m/s, rotation {rotation:+.4f} rad "
-              f"({result['angular_rate']:+.3f} rad/s over the step)")
-        print(f"world-frame velocity: vx {result['velocity_world'][0]:+.3f}, vy {result['velocity_world'][1]:+.3f} m/s")
-        if not result["planning"].startswith("off"):
-            print(f"note: planning {result['planning']}")
-    return result
-
+import runpy
+from pathlib import Path
 
 if __name__ == "__main__":
-    main()
+    runpy.run_path(str(Path(__file__).resolve().parents[1] / "src" / "crowdrl" / "onnx_example.py"), run_name="__main__")

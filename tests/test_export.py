@@ -1,6 +1,7 @@
 """ONNX export (crowdrl.export, experiments/export.py) and the numpy + onnxruntime example
-(experiments/onnx_example.py): the exported model acts as the library's greedy actor, the example
-runs where torch and crowdrl cannot be imported, bad arguments exit 2 naming the argument."""
+(crowdrl/onnx_example.py, run in a checkout by experiments/onnx_example.py): the exported model acts
+as the library's greedy actor, the example runs where torch and crowdrl cannot be imported, bad
+arguments exit 2 naming the argument."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ from crowdrl.training.variants import make_network  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPORT = [sys.executable, str(ROOT / "experiments" / "export.py")]
-EXAMPLE = ROOT / "experiments" / "onnx_example.py"
+EXAMPLE = ROOT / "src" / "crowdrl" / "onnx_example.py"  # shipped in the package, run by its path
+SHORTCUT = ROOT / "experiments" / "onnx_example.py"  # the checkout's way to run it
 ENV = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
 
 # a default run, the crowd sizes that vary (the mask is read), the other encoders, a noisy head
@@ -118,9 +120,11 @@ def test_the_example_transform_equals_the_librarys():
         np.testing.assert_allclose(x, w.numpy(), atol=1e-12, rtol=0)
 
 
-def test_the_example_runs_where_torch_and_crowdrl_cannot_be_imported(exported, tmp_path):
+@pytest.mark.parametrize("script", [EXAMPLE, SHORTCUT], ids=["packaged", "checkout-shortcut"])
+def test_the_example_runs_where_torch_and_crowdrl_cannot_be_imported(exported, tmp_path, script):
     """Modules named torch, crowdrl, tensordict and torchrl that raise ImportError come first on the
-    path: the example imports only numpy and onnxruntime, and acts as the library does."""
+    path: the example (the packaged file, or the checkout's shortcut to it) imports only numpy and
+    onnxruntime, and acts as the library does."""
     folder, model = exported
     blocked = tmp_path / "blocked"
     blocked.mkdir()
@@ -135,8 +139,8 @@ def test_the_example_runs_where_torch_and_crowdrl_cannot_be_imported(exported, t
         "        pass\n"
         "    else:\n"
         "        raise SystemExit(f'{name} could be imported')\n"
-        f"sys.argv = [{str(EXAMPLE)!r}, {str(model)!r}, '--json']\n"
-        f"runpy.run_path({str(EXAMPLE)!r}, run_name='__main__')\n"
+        f"sys.argv = [{str(script)!r}, {str(model)!r}, '--json']\n"
+        f"runpy.run_path({str(script)!r}, run_name='__main__')\n"
         "assert 'torch' not in sys.modules and 'crowdrl' not in sys.modules\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
@@ -164,6 +168,16 @@ def test_the_example_runs_where_torch_and_crowdrl_cannot_be_imported(exported, t
     assert feeds["humans_mask"].all() and feeds["robot_rc"].dtype == np.float32
 
 
+def test_the_example_refuses_a_model_trained_among_obstacles_naming_the_inputs_it_builds(tmp_path):
+    folder = make_run_folder(tmp_path / "run", CASES["sgd3qn-room"])
+    export_onnx(folder, tmp_path / "room.onnx", check=False)
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "room.onnx")], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "model:" in proc.stderr and "entities_rc" in proc.stderr and "open-space inputs" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_a_planning_checkpoint_exports_its_q_policy_and_says_so(tmp_path):
     folder = make_run_folder(tmp_path / "run", {"planning": {"enabled": True}, "env": {"num_humans": 5}})
     work = tmp_path / "work"
@@ -172,6 +186,7 @@ def test_a_planning_checkpoint_exports_its_q_policy_and_says_so(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "planning is not exported" in proc.stdout
+    assert f"run it without torch: python {EXAMPLE} " in proc.stdout  # the example's path, wherever crowdrl is
     assert sorted(p.name for p in work.iterdir()) == ["policy.onnx"], "no Hydra folder or log beside it"
     meta = {p.key: p.value for p in onnx.load(work / "policy.onnx").metadata_props}
     assert meta["crowdrl.planning"].startswith("not exported: the checkpoint acts with online planning")

@@ -94,6 +94,22 @@ def test_an_installed_crowdrl_train_composes_its_config_from_the_package_outside
     assert sorted(p.name for p in tmp_path.iterdir()) == [], "composing the config wrote into the current directory"
 
 
+def test_installed_command_lines_name_themselves_in_their_errors_and_the_onnx_example_ships(installed, tmp_path):
+    """A refused ``crowdrl-evaluate`` says ``crowdrl-evaluate: <argument>: ...`` (not a checkout script's
+    name) and leaves the current directory empty; ``crowdrl/onnx_example.py`` is installed and runs by its
+    path outside the checkout."""
+    env = {**os.environ, "PYTHONPATH": str(installed), "WANDB_MODE": "offline"}
+    proc = subprocess.run([sys.executable, str(installed / "bin" / "crowdrl-evaluate"), "checkpoint=nope"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip() == "crowdrl-evaluate: checkpoint: no checkpoint at nope", proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    pytest.importorskip("onnxruntime")
+    example = installed / "crowdrl" / "onnx_example.py"
+    proc = subprocess.run([sys.executable, str(example), "missing.onnx"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 2 and "model: no file at missing.onnx" in proc.stderr, proc.stderr[-2000:]
+
+
 def test_in_the_checkout_the_configs_are_the_top_level_conf():
     import crowdrl
     from crowdrl.resources import config_dir

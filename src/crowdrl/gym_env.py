@@ -167,5 +167,5 @@ class CrowdNavGymEnv(gym.Env):
             s.human_position[0].numpy(), cfg.human_radius, robot_heading=float(s.robot_heading[0]),
             half_width=max(cfg.circle_radius, cfg.square_width / 2) + 1.0,
             title=f"t = {int(s.step_count[0]) * cfg.time_step:.2f} s",
-            obstacles=[p.numpy() for p in s.obstacle_polygons(0)],
+            obstacles=s.obstacle_polygons(0),
         )

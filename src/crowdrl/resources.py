@@ -1,4 +1,5 @@
-"""Where the Hydra configuration tree lives.
+"""Where the files crowdrl ships beside its modules live: the Hydra configuration tree and the
+torch-free ONNX example.
 
 The configs are kept once, in the repository's top-level ``conf/``; a wheel ships them as the
 package data ``crowdrl/conf/`` (``pyproject.toml`` maps ``crowdrl.conf`` to ``conf``). The command
@@ -23,3 +24,9 @@ def config_dir() -> Path:
         return checkout
     raise FileNotFoundError(f"crowdrl's Hydra configs are missing: neither {packaged} nor {checkout} holds "
                             f"config.yaml (reinstall crowdrl)")
+
+
+def onnx_example() -> Path:
+    """The standalone script that runs an exported policy with numpy and onnxruntime alone
+    (``python <this path> policy.onnx``); it imports nothing of crowdrl, so it can be copied onto a robot."""
+    return Path(__file__).resolve().parent / "onnx_example.py"

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 
 def command(module: str) -> str:
@@ -27,3 +28,15 @@ def command(module: str) -> str:
     if argv0.resolve() == Path(__file__).resolve().parent / f"{module}.py":
         return f"python -m crowdrl.cli.{module}"
     return f"python {sys.argv[0]}"
+
+
+def program(module: str) -> str:
+    """The name this command line goes by in its messages: ``train.py`` (``python experiments/train.py``
+    or ``python -m crowdrl.cli.train``) or ``crowdrl-train`` (``module``: e.g. ``"train"``)."""
+    return Path(sys.argv[0]).name if sys.argv and sys.argv[0] else f"crowdrl-{module}"
+
+
+def exit_with_error(module: str, message: str, code: int = 2) -> NoReturn:
+    """Print ``<program>: <message>`` on stderr and exit with ``code`` (2: refused input, 1: a failure)."""
+    print(f"{program(module)}: {message}", file=sys.stderr)
+    raise SystemExit(code)

@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from crowdrl.cli import exit_with_error
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -92,8 +93,7 @@ def main(argv: list[str] | None = None) -> dict:
     try:  # config.yaml is written under the folder's lock, once every check has passed
         summary = run_training(run, out, prepare=lambda: (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg)))
     except (CheckpointError, RunFolderRefused) as exc:
-        print(f"demo.py: cannot run in {out}: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exit_with_error("demo", f"cannot run in {out}: {exc}")
     train_s = time.perf_counter() - start
     agent = summary["test"]["metrics"]
 

@@ -14,13 +14,13 @@ same numbers whatever ``eval.batch``.
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from crowdrl.cli import exit_with_error
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -82,8 +82,7 @@ def main(cfg: DictConfig) -> dict:
         from crowdrl.training.run_folder import discard_new_folders
 
         discard_new_folders(out)  # only the folder Hydra made for this evaluation, and only while empty
-        print(f"evaluate.py: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exit_with_error("evaluate", f"checkpoint: {exc}" if isinstance(exc, CheckpointError) else str(exc))
     write_records(out, [record])
     if traj is not None:
         from crowdrl.viz import animate_trajectory, plot_trajectory

@@ -7,20 +7,22 @@ needs the ``export`` extra: onnx, onnxruntime).
 
 Inputs, outputs and metadata: ``docs/export.md`` and :mod:`crowdrl.export`. A checkpoint trained
 with online planning exports its Q policy only (it says so, here and in the model's metadata).
-``experiments/onnx_example.py`` runs the model with numpy and onnxruntime alone. A bad argument
+``crowdrl/onnx_example.py`` (installed with the package; ``experiments/onnx_example.py`` in a checkout)
+runs the model with numpy and onnxruntime alone. A bad argument
 (checkpoint, out, format, opset) exits with code 2 and a message naming it.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
+from typing import NoReturn
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.resources import config_dir
+from crowdrl.cli import exit_with_error
+from crowdrl.resources import config_dir, onnx_example
 
 # the check runs the torch policy a few times: compiling SG-D3QN's pairwise kernel for that would
 # cost more than it saves (up to a minute on first use)
@@ -29,9 +31,8 @@ os.environ.setdefault("CROWDRL_PAIRWISE", "eager")
 CONF_DIR = str(config_dir())
 
 
-def fail(message: str) -> None:
-    print(f"export.py: {message}", file=sys.stderr)
-    raise SystemExit(2)
+def fail(message: str) -> NoReturn:
+    exit_with_error("export", message)
 
 
 @hydra.main(config_path=CONF_DIR, config_name="export", version_base="1.3")
@@ -65,15 +66,14 @@ def main(cfg: DictConfig) -> dict:
     except ValueError as exc:  # export_onnx names the argument (out)
         fail(str(exc))
     except RuntimeError as exc:  # onnx missing, or the written model disagrees with torch
-        print(f"export.py: {exc}", file=sys.stderr)
-        raise SystemExit(1) from None
+        exit_with_error("export", str(exc), code=1)
     for note in info.notes:
         print(f"NOTE: {note}")
     m = info.metadata
     checked = f", Q within {info.max_q_error:.1e} of torch (onnxruntime)" if info.max_q_error is not None else ""
     print(f"wrote {info.path} ({m['crowdrl.encoder']}, {m['crowdrl.exploration']}, humans: {m['crowdrl.humans']}, "
           f"planning: {m['crowdrl.planning'].split(':')[0]}{checked})")
-    print(f"run it without torch: python experiments/onnx_example.py {info.path} (in a crowdrl checkout)")
+    print(f"run it without torch: python {onnx_example()} {info.path}")
     return {"path": str(info.path), "planning_dropped": info.planning_dropped}
 
 

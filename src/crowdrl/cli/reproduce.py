@@ -40,6 +40,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from crowdrl.cli import exit_with_error
 from crowdrl.resources import config_dir
 from crowdrl.tables import markdown_table
 
@@ -528,8 +529,7 @@ def main(cfg: DictConfig) -> None:
         plan = make_plan(OmegaConf.to_container(cfg, resolve=True))
         result = reproduce(plan)
     except (PlanError, RuntimeError) as exc:
-        print(f"reproduce.py: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exit_with_error("reproduce", str(exc))
     print((plan.out / "table.md").read_text())
     print(f"{result['trained']} run(s) trained or finished in {result['wall_s'] / 60:.1f} min; "
           f"table, figures and runs in {plan.out.resolve()}")

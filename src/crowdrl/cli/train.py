@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import command
+from crowdrl.cli import command, exit_with_error
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -61,8 +60,7 @@ def main(cfg: DictConfig) -> float:
             cfg, run = resumed_config(cfg, Path(run.resume), HydraConfig.get().overrides.task)
     except ConfigError as exc:
         discard_new_folders(out_dir)  # only a folder this run created, and only while empty
-        print(f"invalid configuration: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exit_with_error("train", f"invalid configuration: {exc}")
     run_dir = Path(run.resume) if run.resume else out_dir
     if run.resume:
         discard_new_folders(out_dir)
@@ -73,14 +71,11 @@ def main(cfg: DictConfig) -> float:
     except (CheckpointError, RunFolderRefused) as exc:  # refused before anything in the folder changed
         if not run.resume:
             discard_new_folders(out_dir)
-        print(f"cannot run in {run_dir}: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exit_with_error("train", f"cannot run in {run_dir}: {exc}")
     except NonFiniteError as exc:  # status.json says "failed" and why; no eval.json is written
-        print(f"training failed: {exc} (run folder: {run_dir.resolve()})", file=sys.stderr)
-        raise SystemExit(1) from None
+        exit_with_error("train", f"training failed: {exc} (run folder: {run_dir.resolve()})", code=1)
     except KeyboardInterrupt as exc:  # SIGTERM/SIGINT: checkpointed, status "interrupted"
-        print(f"interrupted ({exc}); resume with: {command('train')} resume={run_dir}", file=sys.stderr)
-        raise SystemExit(130) from None
+        exit_with_error("train", f"interrupted ({exc}); resume with: {command('train')} resume={run_dir}", code=130)
     m = summary["test"]["metrics"]
     if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
         print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")

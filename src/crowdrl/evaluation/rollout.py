@@ -130,7 +130,7 @@ def evaluate(
             row = record_episode - first
             trajectory = recorded_trajectory(cfg, start[row], rollout[row], int(chunk["lengths"][row]),
                                              EVENT_NAMES[int(chunk["events"][row])],
-                                             obstacle_polygons(crowd.state, row))
+                                             crowd.state.obstacle_polygons(row) or None)
         if progress is not None:
             progress(n)
     metrics = episode_metrics(
@@ -140,14 +140,6 @@ def evaluate(
         discount=discount_per_step(cfg.time_step, cfg.robot_v_pref),
     )
     return metrics, trajectory
-
-
-def obstacle_polygons(state, row: int) -> tuple | None:
-    """The obstacle polygons of episode ``row`` of a :class:`~crowdrl.sim.state.CrowdState` as
-    ``[n_i, 2]`` arrays (valid vertices only), or ``None`` without obstacles."""
-    if state is None or not state.has_obstacles:
-        return None
-    return tuple(p.numpy() for p in state.obstacle_polygons(row))
 
 
 def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -43,13 +44,13 @@ class CrowdState:
         """Whether the episodes have obstacle polygons (a tensor with ``P > 0``)."""
         return self.obstacles is not None and self.obstacles.shape[1] > 0
 
-    def obstacle_polygons(self, row: int) -> tuple[Tensor, ...]:
-        """Episode ``row``'s obstacle polygons as ``[n_i, 2]`` float64 CPU tensors (valid vertices
-        only; a wall has 2); empty without obstacles."""
+    def obstacle_polygons(self, row: int) -> tuple[np.ndarray, ...]:
+        """Episode ``row``'s obstacle polygons as ``[n_i, 2]`` float64 arrays (valid vertices only; a
+        wall has 2), as the figures draw them; empty without obstacles."""
         if not self.has_obstacles:
             return ()
         obs, mask = self.obstacles[row].double().cpu(), self.obstacle_mask[row].cpu()
-        return tuple(obs[p, mask[p]] for p in range(obs.shape[0]) if int(mask[p].sum()) >= 2)
+        return tuple(obs[p, mask[p]].numpy() for p in range(obs.shape[0]) if int(mask[p].sum()) >= 2)
 
     @property
     def device(self) -> torch.device:

@@ -139,7 +139,7 @@ def checkpoint_path(path: Path | str) -> Path:
     path = Path(path)
     if not path.exists() and path.parent.name == "pretrained":
         have = sorted(f.parent.name for f in path.parent.glob("*/best.pt"))
-        raise CheckpointError(f"checkpoint: no pretrained agent {path.name!r} in {path.parent}; "
+        raise CheckpointError(f"no pretrained agent {path.name!r} in {path.parent}; "
                               f"available: {', '.join(have) or 'none'}")
     if not path.is_dir():
         return path
