@@ -26,7 +26,14 @@ def run(cmd: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
 def test_reproduce_bad_settings_fail_naming_the_key(tmp_path, override, key):
     proc = run([*REPRODUCE, *TINY, override, f"out={tmp_path / 'r'}"], timeout=120)
     assert proc.returncode == 2 and proc.stderr.strip().startswith(f"reproduce.py: {key}"), proc.stderr[-1000:]
-    assert not (tmp_path / "r" / "manifest.json").exists()
+    assert not (tmp_path / "r").exists(), "a refused call leaves no out= folder behind"
+
+
+def test_a_refused_reproduce_keeps_an_out_folder_that_existed_before(tmp_path):
+    (tmp_path / "r").mkdir()
+    proc = run([*REPRODUCE, *TINY, "seeds=[-1]", f"out={tmp_path / 'r'}"], timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().startswith("reproduce.py: seeds"), proc.stderr[-1000:]
+    assert (tmp_path / "r").is_dir() and not any((tmp_path / "r").iterdir())
 
 
 def test_reproduce_with_another_encoder_names_its_runs_and_rows_by_it(tmp_path):

@@ -529,6 +529,9 @@ def main(cfg: DictConfig) -> None:
         plan = make_plan(OmegaConf.to_container(cfg, resolve=True))
         result = reproduce(plan)
     except (PlanError, RuntimeError) as exc:
+        from crowdrl.training.run_folder import discard_new_folders
+
+        discard_new_folders(cfg.out)  # the out= folder Hydra made for this call, and only while empty
         exit_with_error("reproduce", str(exc))
     print((plan.out / "table.md").read_text())
     print(f"{result['trained']} run(s) trained or finished in {result['wall_s'] / 60:.1f} min; "
