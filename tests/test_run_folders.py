@@ -315,6 +315,22 @@ def test_a_runs_json_files_are_strict_and_read_back(finished_run):
     assert completed_summary(finished_run)["test"]["metrics"]["episodes"] == 8
 
 
+def test_the_scalar_log_is_strict_json_lines_through_a_resume_truncation(tmp_path):
+    """A non-finite scalar (a loss that blew up, an undefined mean) is ``null`` in ``scalars.jsonl``,
+    in the rows a resume keeps too; ``scalars.csv`` leaves its cell empty."""
+    from crowdrl.training.scalars import ScalarLog
+
+    log = ScalarLog(tmp_path)
+    log.log({"frames": 1, "train/loss": float("nan"), "train/q": 1.5})
+    log.log({"frames": 2, "train/loss": float("inf"), "train/q": 2.5})
+    assert log.truncate_after(1) == 1
+    log.log({"frames": 3, "train/loss": float("-inf")})
+    log.close()
+    rows = [_strict(line) for line in (tmp_path / "scalars.jsonl").read_text().splitlines()]
+    assert rows == [{"frames": 1, "train/loss": None, "train/q": 1.5}, {"frames": 3, "train/loss": None}]
+    assert (tmp_path / "scalars.csv").read_text().splitlines() == ["frames,train/loss,train/q", "1,,1.5", "3,,"]
+
+
 def test_atomic_writes_leave_the_mode_a_plain_open_would(tmp_path):
     from crowdrl.files import atomic_write_bytes
 

@@ -8,11 +8,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from crowdrl.files import atomic_write_bytes, atomic_write_with
+from crowdrl.files import atomic_write_bytes, atomic_write_with, dumps_json
 
 
 class ScalarLog:
-    """Append-only scalar log with one JSON line per row (``scalars.jsonl``), fsynced per row.
+    """Append-only scalar log with one strict JSON line per row (``scalars.jsonl``), fsynced per row;
+    a non-finite value (NaN, ±inf) is written as ``null``, as in every JSON file crowdrl writes.
 
     ``scalars.csv`` is rewritten from it at ``close``/``flush_csv`` (columns can appear over
     time). On resume, ``truncate_after(frames)`` drops rows written after the checkpoint being
@@ -26,7 +27,7 @@ class ScalarLog:
         self._f = open(self.path, "a", encoding="utf-8")
 
     def log(self, row: dict[str, Any]) -> None:
-        self._f.write(json.dumps(row, sort_keys=True) + "\n")
+        self._f.write(dumps_json(row, indent=None, sort_keys=True) + "\n")  # NaN/inf as null: strict JSON
         self._f.flush()
         os.fsync(self._f.fileno())
 
@@ -45,7 +46,7 @@ class ScalarLog:
         self._f.close()
         rows = self.rows()
         kept = [r for r in rows if r.get("frames", 0) <= frames]
-        atomic_write_bytes(self.path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in kept).encode())
+        atomic_write_bytes(self.path, "".join(dumps_json(r, indent=None, sort_keys=True) + "\n" for r in kept).encode())
         self._f = open(self.path, "a", encoding="utf-8")
         return len(rows) - len(kept)
 
