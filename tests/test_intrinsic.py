@@ -12,7 +12,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose
 
-from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform, RunningStd
+from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform, RunningMeanStd
 
 OBS_DIM, NUM_ACTIONS = 4, 3
 
@@ -97,7 +97,7 @@ def test_re3_running_std_normalises_and_encoder_stays_frozen():
 
 
 def test_running_std_matches_pooled_statistics():
-    rs = RunningStd()
+    rs = RunningMeanStd()
     chunks = [torch.randn(n) * 3 + 1 for n in (5, 17, 1, 40)]
     for c in chunks:
         rs.update(c)

@@ -8,6 +8,7 @@ name) work on any ``nn.Module`` head. Keep it that way.
 
 from crowdrl.exploration.icm import ICM
 from crowdrl.exploration.intrinsic import IntrinsicBonus, IntrinsicRewardTransform
-from crowdrl.exploration.re3 import RE3, RunningStd
+from crowdrl.exploration.normalize import RunningMeanStd
+from crowdrl.exploration.re3 import RE3
 
-__all__ = ["ICM", "RE3", "IntrinsicBonus", "IntrinsicRewardTransform", "RunningStd"]
+__all__ = ["ICM", "RE3", "IntrinsicBonus", "IntrinsicRewardTransform", "RunningMeanStd"]

@@ -74,7 +74,6 @@ class RunningMeanStd(nn.Module):
         return self.var.sqrt()
 
 
-RunningStd = RunningMeanStd  # the scalar case, as RE3's distance statistics use it
 
 
 def _check_clip(clip: float | None, name: str) -> float | None:
@@ -175,4 +174,4 @@ class ObservationNormalizer(nn.Module):
                                       error_msgs)
 
 
-__all__ = ["RunningMeanStd", "RunningStd", "RewardNormalizer", "ObservationNormalizer", "REWARD_SCALES"]
+__all__ = ["RunningMeanStd", "RewardNormalizer", "ObservationNormalizer", "REWARD_SCALES"]

@@ -34,7 +34,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from crowdrl.exploration.intrinsic import IntrinsicBonus, feature_dim_of, seeded_init
-from crowdrl.exploration.normalize import RunningStd
+from crowdrl.exploration.normalize import RunningMeanStd
 
 EMBED_DIM = 128
 
@@ -97,7 +97,7 @@ class RE3(IntrinsicBonus):
         for module in (self.encoder, self.head):
             module.requires_grad_(False)
             module.eval()
-        self.dist_stats = RunningStd()
+        self.dist_stats = RunningMeanStd()
 
     def train(self, mode: bool = True) -> "RE3":
         super().train(mode)
