@@ -51,6 +51,7 @@ def write_index() -> None:
              "square test cases of test seed 0 (trained on circle; square is zero-shot). Check one from a clone:",
              "", "```bash",
              ".venv/bin/python experiments/evaluate.py checkpoint=pretrained/<name> env=square   # reproduces eval.json",
+             ".venv/bin/python experiments/check_pretrained.py   # every agent on every recorded scenario, compared",
              "```", "",
              "On the machine that wrote them the records come back to every digit. On another CPU the kernels",
              "round differently, so a path can drift by a step in a few episodes: for",

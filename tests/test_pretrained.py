@@ -66,3 +66,30 @@ def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
         assert abs(got[key] - want[key]) <= 0.003, (key, got[key], want[key])  # at most 3 of 1000 outcomes
     for key in ("navigation_time", "average_return"):
         assert got[key] == pytest.approx(want[key], rel=1e-3), key
+
+
+def _check_pretrained():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import check_pretrained
+    finally:
+        sys.path.remove(str(ROOT / "experiments"))
+    return check_pretrained
+
+
+def test_check_pretrained_tells_an_identical_record_from_a_moved_one():
+    compare = _check_pretrained().compare
+    want = json.loads((AGENTS[0] / "eval.json").read_text())[0]
+    same = compare(want, dict(want))
+    assert same["identical"] and same["max_rel_diff"] == 0 and same["outcomes_moved"] == 0
+    drift = compare(want, {**want, "navigation_time": want["navigation_time"] * (1 + 1e-4)})
+    assert not drift["identical"] and drift["max_rel_diff"] == pytest.approx(1e-4) and drift["outcomes_moved"] == 0
+    moved = compare(want, {**want, "success_rate": want["success_rate"] - 0.004,
+                           "collision_rate": want["collision_rate"] + 0.004})
+    assert moved["outcomes_moved"] == 4 and moved["max_rate_diff"] == pytest.approx(0.004)
+
+
+def test_check_pretrained_refuses_an_unknown_agent_listing_the_ones_that_exist():
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "check_pretrained.py"), "--agents", "nope"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "--agents: no pretrained agent 'nope'" in proc.stderr and AGENTS[0].name in proc.stderr
