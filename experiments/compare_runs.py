@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
 from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.sim.config import SCENARIOS
-from crowdrl.tables import markdown_table
+from crowdrl.tables import interval_cell, markdown_table
 
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
@@ -99,20 +98,14 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
 def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last: int = 5) -> str:
     metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
 
-    def cell(r: dict, key: str, digits: int) -> str:
-        if math.isnan(r[key]):
-            return "–"
-        text = f"{r[key]:.{digits}f}"
-        return text + (f" [{r[f'{key}_lo']:.{digits}f}, {r[f'{key}_hi']:.{digits}f}]" if r["seeds"] > 1 else "")
-
     lines = [f"Cells: mean over seeds [95 % stratified-bootstrap CI, rliable, {reps} resamples]; "
              f"P(improve): probability that the group's success rate beats {first}'s on a random pair of seeds.", ""]
     if scenarios == [VAL_SCENARIO]:
         lines[-1:] = [f"Validation episodes only (the runs' scalars.jsonl): rates over each run's last {last} "
                       f"validations ({last} x 100 episodes at the end of training), and its best validation.", ""]
     for scenario in scenarios:
-        cells = [[r["group"], r["seeds"], *(cell(r, k, d) for k, _, d in metrics),
-                  f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"]
+        cells = [[r["group"], r["seeds"], *(interval_cell(r, k, d, interval=r["seeds"] > 1) for k, _, d in metrics),
+                  interval_cell(r, "p_improve", 2)]
                  for r in rows if r["scenario"] == scenario]
         lines += [f"## {scenario}", "",
                   markdown_table(["group", "seeds", *(h for _, h, _ in metrics), "P(improve)"], cells), ""]

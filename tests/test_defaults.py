@@ -1,5 +1,5 @@
 """One set of defaults: the typed schema (``RunConfig``) and ``conf/config.yaml`` composed with no
-overrides (``preset=demo``) train the same thing, key by key (issue 27, item 4)."""
+overrides (``preset=demo``) train the same thing, key by key."""
 
 from pathlib import Path
 

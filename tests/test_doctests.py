@@ -1,4 +1,4 @@
-"""The ``Examples:`` of the reusable classes run as doctests (issue 27): each module's examples
+"""The ``Examples:`` of the reusable classes run as doctests: each module's examples
 pass, and there are examples to run (a module without any fails, so the test is never vacuous)."""
 
 from __future__ import annotations

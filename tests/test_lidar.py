@@ -1,4 +1,4 @@
-"""The 2-D lidar scan (issue 24): exact distances to walls and discs, masks and padding, the heading
+"""The 2-D lidar scan: exact distances to walls and discs, masks and padding, the heading
 convention, batching, and the ``"lidar"`` observation of the envs."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Scenarios with static obstacles (issue 24, items 2 and 3): corridor, doorway, room.
+"""Scenarios with static obstacles: corridor, doorway, room.
 
 Spawns and goals clear of the obstacles with reachable goals, determinism in (stream, seed,
 episode id), the humans' ORCA among obstacles, the robot's continuous collision with walls, the

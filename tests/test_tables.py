@@ -23,3 +23,12 @@ def test_padded_columns_line_up_and_right_alignment_marks_the_rule():
 def test_shape_errors_name_what_is_wrong(kwargs, match):
     with pytest.raises(ValueError, match=match):
         markdown_table(["a", "b"], **kwargs)
+
+
+def test_interval_cells_show_the_interval_only_when_asked_and_a_dash_for_undefined():
+    from crowdrl.tables import interval_cell
+
+    row = {"s": 0.8766, "s_lo": 0.8, "s_hi": 0.95, "nan": float("nan"), "nan_lo": 0.0, "nan_hi": 1.0}
+    assert interval_cell(row, "s", 3) == "0.877 [0.800, 0.950]"
+    assert interval_cell(row, "s", 1, interval=False) == "0.9"
+    assert interval_cell(row, "nan", 3) == "–" and interval_cell(row, "absent", 3) == "–"

@@ -1,8 +1,9 @@
-"""Markdown tables: the one writer behind every table crowdrl prints or records."""
+"""Markdown tables: the one writer behind every table crowdrl prints or records, and its cells."""
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+import math
+from typing import Any, Iterable, Mapping, Sequence
 
 
 def _escape(text: object) -> str:
@@ -49,4 +50,21 @@ def markdown_table(header: Sequence[object], rows: Iterable[Sequence[object]], *
     return "\n".join([line(heads), rule, *(line(row) for row in cells)])
 
 
-__all__ = ["markdown_table"]
+def interval_cell(row: Mapping[str, Any], key: str, digits: int, *, interval: bool = True) -> str:
+    """``row[key]`` with its interval ``row[key + "_lo"]``, ``row[key + "_hi"]`` as ``mean [lo, hi]``
+    (``interval=False``: the mean alone), to ``digits`` decimals; ``–`` when the key is missing or NaN.
+
+    Examples:
+        >>> interval_cell({"p": 0.734, "p_lo": 0.5, "p_hi": 0.9}, "p", 2)
+        '0.73 [0.50, 0.90]'
+        >>> interval_cell({"p": float("nan")}, "p", 2), interval_cell({}, "p", 2)
+        ('–', '–')
+    """
+    mean = row.get(key)
+    if mean is None or math.isnan(mean):
+        return "–"
+    text = f"{mean:.{digits}f}"
+    return text + f" [{row[f'{key}_lo']:.{digits}f}, {row[f'{key}_hi']:.{digits}f}]" if interval else text
+
+
+__all__ = ["markdown_table", "interval_cell"]

@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.cli import exit_with_error
 from crowdrl.resources import config_dir
-from crowdrl.tables import markdown_table
+from crowdrl.tables import interval_cell, markdown_table
 
 os.environ.setdefault("WANDB_MODE", "offline")
 
@@ -367,22 +367,13 @@ def table_rows(plan: Plan, records: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def _cell(row: dict[str, Any], key: str, digits: int) -> str:
-    mean, lo, hi, paper = row[key], row[f"{key}_lo"], row[f"{key}_hi"], row[f"{key}_paper"]
-    if math.isnan(mean):
-        return "–"
-    text = f"{mean:.{digits}f}"
-    if row["seeds"] > 1:
-        text += f" [{lo:.{digits}f}, {hi:.{digits}f}]"
-    if not math.isnan(paper):
-        text += f" ({paper:.{digits}f})"
-    return text
+    """The mean over seeds with its interval (from two seeds on), then the paper's value if it has one."""
+    text = interval_cell(row, key, digits, interval=row["seeds"] > 1)
+    paper = row[f"{key}_paper"]
+    return text if text == "–" or math.isnan(paper) else f"{text} ({paper:.{digits}f})"
 
 
 TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg return", "P(improve on ε-greedy)")
-
-
-def _p_improve(r: dict[str, Any]) -> str:
-    return f"{r['p_improve']:.2f} [{r['p_improve_lo']:.2f}, {r['p_improve_hi']:.2f}]" if "p_improve" in r else "–"
 
 
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
@@ -416,7 +407,7 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
     lines.append("")
     for scenario in plan.scenarios:
         cells = [[r["method"], r["seeds"], _cell(r, "success_rate", 3), _cell(r, "collision_rate", 3),
-                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), _p_improve(r)]
+                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), interval_cell(r, "p_improve", 2)]
                  for r in rows if r["scenario"] == scenario]
         lines += [f"## {scenario}", "", markdown_table(TABLE_HEADER, cells), ""]
     return "\n".join(lines)
