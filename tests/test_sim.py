@@ -230,7 +230,15 @@ def test_fifty_humans_spawn_and_step():
         (dict(scenario="triangle"), "scenario"),
         (dict(num_humans=0), "num_humans"),
         (dict(num_humans=2.5), "num_humans"),
+        (dict(num_humans=5.0), "num_humans"),  # a count as a float would fail later, far from its key
+        (dict(num_humans="5"), "num_humans"),
         (dict(num_humans=500), "num_humans"),
+        (dict(min_humans=2.0), "min_humans"),
+        (dict(lidar_rays=8.0), "lidar_rays"),
+        (dict(orca_max_neighbors=10.0), "orca_max_neighbors"),
+        (dict(goal_steps_before_new_goal=1.0), "goal_steps_before_new_goal"),
+        (dict(room_pillars=3.0), "room_pillars"),
+        (dict(obstacle_tokens=4.0), "obstacle_tokens"),
         (dict(time_step=-0.1), "time_step"),
         (dict(time_limit=0.1), "time_limit"),
     ],
@@ -238,6 +246,12 @@ def test_fifty_humans_spawn_and_step():
 def test_bad_config_raises_naming_the_field(kwargs, word):
     with pytest.raises(ValueError, match=word):
         CrowdConfig(**kwargs)
+
+
+def test_numpy_integer_counts_are_accepted():
+    import numpy as np
+
+    assert CrowdConfig(num_humans=np.int64(5), min_humans=np.int32(2)).num_humans == 5
 
 
 def test_impossible_crowd_raises_spawn_error():

@@ -8,7 +8,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from crowdrl.sim import rng
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import CrowdConfig, is_integer
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
 from crowdrl.sim.lidar import observe_lidar
@@ -105,7 +105,7 @@ class CrowdNavEnv(EnvBase):
         robot_kinematics: str = "unicycle",
         min_humans: int | None = None,
     ) -> None:
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
+        if not is_integer(num_envs) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
@@ -157,7 +157,7 @@ class CrowdNavEnv(EnvBase):
 
     def set_next_episode(self, episode: int) -> None:
         """Continue the stream at ``episode`` (a resumed run starts fresh episodes, not repeats)."""
-        if isinstance(episode, bool) or int(episode) != episode or episode < 0:
+        if not is_integer(episode) or episode < 0:
             raise ValueError(f"episode must be a non-negative integer, got {episode!r}")
         self._next_episode = int(episode)
 
@@ -260,7 +260,7 @@ class CrowdNavEnv(EnvBase):
         """Select the scenario stream ``seed`` and restart its episode counter."""
         if seed is None:
             seed = 0
-        if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+        if not is_integer(seed) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         self._seed = int(seed)
         self._next_episode = 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 from crowdrl.sim.kinematics import KINEMATICS
@@ -16,6 +17,12 @@ OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_wi
 LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
+
+
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (``int``, a numpy integer), not a bool and not a float such as ``10.0``:
+    a count given as a float would pass a range check and fail later, far from its key."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -87,15 +94,14 @@ class CrowdConfig:
             raise ValueError(f"robot_kinematics must be one of {KINEMATICS}, got {self.robot_kinematics!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario must be one of {SCENARIOS}, got {self.scenario!r}")
-        if isinstance(self.num_humans, bool) or int(self.num_humans) != self.num_humans or self.num_humans < 1:
+        if not is_integer(self.num_humans) or self.num_humans < 1:
             raise ValueError(f"num_humans must be an integer >= 1, got {self.num_humans!r}")
         if self.num_humans > MAX_HUMANS:
             raise ValueError(
                 f"num_humans={self.num_humans} cannot be placed with the spawn clearance in a "
                 f"{self.square_width} m square; at most {MAX_HUMANS} are supported"
             )
-        if self.min_humans is not None and (isinstance(self.min_humans, bool) or int(self.min_humans) != self.min_humans
-                                            or not 1 <= self.min_humans <= self.num_humans):
+        if self.min_humans is not None and not (is_integer(self.min_humans) and 1 <= self.min_humans <= self.num_humans):
             raise ValueError(f"min_humans must be an integer in 1..num_humans ({self.num_humans}), got {self.min_humans!r}")
         for name in ("time_step", "time_limit", "robot_radius", "human_radius", "robot_v_pref",
                      "human_v_pref", "circle_radius", "square_width", "orca_time_horizon"):
@@ -103,7 +109,7 @@ class CrowdConfig:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self._check_obstacle_keys()
-        if isinstance(self.lidar_rays, bool) or int(self.lidar_rays) != self.lidar_rays or self.lidar_rays < 0:
+        if not is_integer(self.lidar_rays) or self.lidar_rays < 0:
             raise ValueError(f"lidar_rays must be an integer >= 0 (0: no scan), got {self.lidar_rays!r}")
         if isinstance(self.lidar_range, bool) or not (isinstance(self.lidar_range, (int, float))
                                                       and math.isfinite(self.lidar_range) and self.lidar_range > 0):
@@ -112,10 +118,12 @@ class CrowdConfig:
             raise ValueError(f"time_limit ({self.time_limit}) must be >= time_step ({self.time_step})")
         if self.discomfort_dist < 0:
             raise ValueError(f"discomfort_dist must be >= 0, got {self.discomfort_dist}")
-        if self.orca_neighbor_dist < 0 or self.orca_max_neighbors < 0:
-            raise ValueError("orca_neighbor_dist and orca_max_neighbors must be >= 0")
-        if self.goal_steps_before_new_goal < 1:
-            raise ValueError(f"goal_steps_before_new_goal must be >= 1, got {self.goal_steps_before_new_goal}")
+        if self.orca_neighbor_dist < 0:
+            raise ValueError(f"orca_neighbor_dist must be >= 0, got {self.orca_neighbor_dist!r}")
+        if not is_integer(self.orca_max_neighbors) or self.orca_max_neighbors < 0:
+            raise ValueError(f"orca_max_neighbors must be an integer >= 0, got {self.orca_max_neighbors!r}")
+        if not is_integer(self.goal_steps_before_new_goal) or self.goal_steps_before_new_goal < 1:
+            raise ValueError(f"goal_steps_before_new_goal must be an integer >= 1, got {self.goal_steps_before_new_goal!r}")
 
     def _check_obstacle_keys(self) -> None:
         """The obstacle geometry's keys: finite, positive, and roomy enough for the agents (checked
@@ -125,10 +133,9 @@ class CrowdConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        if isinstance(self.room_pillars, bool) or int(self.room_pillars) != self.room_pillars or self.room_pillars < 0:
+        if not is_integer(self.room_pillars) or self.room_pillars < 0:
             raise ValueError(f"room_pillars must be an integer >= 0, got {self.room_pillars!r}")
-        if isinstance(self.obstacle_tokens, bool) or int(self.obstacle_tokens) != self.obstacle_tokens \
-                or self.obstacle_tokens < 1:
+        if not is_integer(self.obstacle_tokens) or self.obstacle_tokens < 1:
             raise ValueError(f"obstacle_tokens must be an integer >= 1, got {self.obstacle_tokens!r}")
         if self.room_pillar_min > self.room_pillar_max:
             raise ValueError(f"room_pillar_min ({self.room_pillar_min}) must be <= room_pillar_max "
