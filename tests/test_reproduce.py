@@ -211,6 +211,24 @@ def test_stats_intervals_and_probability_of_improvement():
     assert probability_of_improvement(np.array([0.5, 0.5]), np.array([0.5, 0.5]))[0] == 0.5
 
 
+def test_intervals_depend_on_the_scores_and_seed_only_and_leave_numpys_global_state_alone():
+    """rliable resamples with numpy's global generator whatever random_state it is given: the
+    intervals must not change with what drew from that generator before, nor disturb it."""
+    from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
+
+    x, y = np.array([0.91, 0.87, 0.93]), np.array([0.88, 0.90, 0.85])
+    results = []
+    for state in (0, 1, 2):
+        np.random.seed(state)
+        np.random.rand(state + 1)
+        results.append((mean_interval({"x": x}, reps=500), probability_of_improvement(x, y, reps=500)))
+        after = np.random.rand()
+        np.random.seed(state)
+        np.random.rand(state + 1)
+        assert after == np.random.rand(), "the caller's global numpy stream was disturbed"
+    assert results[0] == results[1] == results[2]
+
+
 def test_ema_weights_each_point_by_its_episodes():
     from crowdrl.viz import ema
 

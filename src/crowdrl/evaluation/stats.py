@@ -3,11 +3,18 @@ the probability of improvement (Agarwal et al., 2021), for one scenario at a tim
 
 Scores are arrays ``[num_seeds]`` (one task); rliable's stratified bootstrap then resamples
 seeds. With 3 seeds the intervals are wide: they say how little 3 seeds can settle.
+
+The intervals are a pure function of the scores and ``seed``. rliable (1.2) draws its resamples
+from numpy's global generator (``np.random.choice`` in its bootstraps' ``update_indices``), not from
+the ``random_state`` it is given, so each estimate here runs with the global generator seeded by
+``seed`` and then puts the caller's global state back.
 """
 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -24,6 +31,20 @@ def _quiet_rliable():
 
     absl_logging.set_verbosity(absl_logging.WARNING)  # rliable logs every estimate at INFO
     return rly
+
+
+@contextmanager
+def _seeded_bootstrap(seed: int) -> Iterator[np.random.RandomState]:
+    """rliable's ``random_state`` (for arch) and numpy's global generator, both seeded with ``seed``; the
+    global state is restored afterwards. Also silences arch's deprecation of the RandomState rliable passes."""
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            yield np.random.RandomState(seed)
+    finally:
+        np.random.set_state(saved)
 
 
 def mean_interval(scores: dict[str, np.ndarray], *, reps: int = 2000, confidence: float = 0.95,
@@ -43,11 +64,9 @@ def mean_interval(scores: dict[str, np.ndarray], *, reps: int = 2000, confidence
         if x.size == 1 or np.all(x == x[0]):
             out[method] = (float(x[0]) if x.size == 1 else float(x.mean()),) * 3
             continue
-        with warnings.catch_warnings():  # arch deprecates the RandomState rliable passes through
-            warnings.simplefilter("ignore", FutureWarning)
+        with _seeded_bootstrap(seed) as random_state:
             point, ci = rly.get_interval_estimates({method: x[:, None]}, lambda s: np.array([s.mean()]), reps=reps,
-                                                   confidence_interval_size=confidence,
-                                                   random_state=np.random.RandomState(seed))
+                                                   confidence_interval_size=confidence, random_state=random_state)
         out[method] = (float(point[method][0]), float(ci[method][0, 0]), float(ci[method][1, 0]))
     return out
 
@@ -60,9 +79,7 @@ def probability_of_improvement(x: np.ndarray, y: np.ndarray, *, reps: int = 2000
 
     x = np.asarray(x, dtype=np.float64).reshape(-1, 1)
     y = np.asarray(y, dtype=np.float64).reshape(-1, 1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
+    with _seeded_bootstrap(seed) as random_state:
         point, ci = rly.get_interval_estimates({"xy": (x, y)}, metrics.probability_of_improvement, reps=reps,
-                                               confidence_interval_size=confidence,
-                                               random_state=np.random.RandomState(seed))
+                                               confidence_interval_size=confidence, random_state=random_state)
     return float(np.ravel(point["xy"])[0]), float(ci["xy"][0].item()), float(ci["xy"][1].item())
