@@ -78,9 +78,13 @@ def test_reproduce_writes_the_table_with_intervals_and_the_figures(reproduced):
 
 def test_reproduce_rerun_trains_nothing_and_refuses_other_settings(reproduced):
     stamp = (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns
+    wall_s = json.loads((reproduced / "table.json").read_text())["wall_s"]
     proc = run([*REPRODUCE, *TINY, f"out={reproduced}"])
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "0 run(s) to train or finish, 4 already done" in proc.stdout
+    # the table keeps the wall-clock of the call that trained, not the re-tabling call's (or none)
+    assert wall_s > 0 and json.loads((reproduced / "table.json").read_text())["wall_s"] == wall_s
+    assert f"{wall_s / 60:.1f} min." in (reproduced / "table.md").read_text()
     assert (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns == stamp
     other = run([*REPRODUCE, *TINY[1:], "budget=demo", f"out={reproduced}"])
     assert other.returncode == 2 and "budget" in other.stderr and "fresh out=" in other.stderr

@@ -413,6 +413,15 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
     return "\n".join(lines)
 
 
+def recorded_wall_s(plan: Plan) -> float | None:
+    """The wall-clock ``table.json`` in ``out=`` records for the call that trained its last runs, if any."""
+    path = plan.out / "table.json"
+    if not path.exists():
+        return None
+    wall_s = json.loads(path.read_text()).get("wall_s")
+    return float(wall_s) if isinstance(wall_s, (int, float)) else None
+
+
 def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> None:
     import csv
     import io
@@ -504,7 +513,8 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
         raise RuntimeError("some runs failed (rerun to resume them):\n  " + "\n  ".join(failures))
     rows = table_rows(plan, collect(plan))
     wall_s = time.perf_counter() - start
-    write_table(plan, rows, wall_s if pending else None)
+    # a call that trained nothing keeps the wall-clock of the call that did (recorded in table.json)
+    write_table(plan, rows, wall_s if pending else recorded_wall_s(plan))
     write_figures(plan, rows)
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
 
