@@ -412,8 +412,10 @@ class ReferenceCrowdSim:
         if self.obstacles:
             return self._new_obstacle_goal(human)
         clearance = cfg.spawn_clearance
+        # every agent's position and goal, the robot's and the human's own included (the batched rule:
+        # a goal next to where the human stands would be reached again at once)
         others = [(self.robot_position, self.robot_goal)] + [
-            (self.human_position[j], self.human_goal[j]) for j in range(self.num_humans) if j != human
+            (self.human_position[j], self.human_goal[j]) for j in range(self.num_humans)
         ]
         goal = (0.0, 0.0)
         for _ in range(NEW_GOAL_TRIES):
