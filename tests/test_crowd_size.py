@@ -123,7 +123,7 @@ def test_env_emits_the_mask_and_the_robot_centric_transform_keeps_it():
     assert bool(fixed.reset().get("humans_mask").all())
 
 
-def test_snapshot_restore_of_a_variable_crowd_and_of_a_snapshot_written_before_masks():
+def test_snapshot_restore_of_a_variable_crowd_and_refusal_of_an_older_snapshot():
     env = CrowdNavEnv("circle", num_envs=4, num_humans=8, min_humans=2, seed=1)
     env.reset()
     for _ in range(5):
@@ -139,9 +139,10 @@ def test_snapshot_restore_of_a_variable_crowd_and_of_a_snapshot_written_before_m
     old.reset()
     legacy = old.snapshot()
     del legacy["tensors"]["state.human_mask"], legacy["min_humans"]
+    legacy["format"] = 1  # as written before crowds varied: no mask
     fresh = CrowdNavEnv("circle", num_envs=4, num_humans=8, seed=1)
-    fresh.restore(legacy)
-    assert bool(fresh.reset().get("humans_mask").all())
+    with pytest.raises(ValueError, match="snapshot of format 1; this code restores format 2 only"):
+        fresh.restore(legacy)
 
 
 # ---------------------------------------------------------------- configuration

@@ -91,20 +91,29 @@ def smoke_runs(tmp_path_factory) -> list[Path]:
     return [base / "s0", base / "s1"]
 
 
-@pytest.mark.parametrize("damage", ["truncated", "foreign"])
+@pytest.mark.parametrize("damage", ["truncated", "foreign", "older"])
 def test_a_refused_resume_leaves_the_folder_byte_for_byte(smoke_runs, tmp_path, damage):
     import shutil
 
     run = tmp_path / "run"
     shutil.copytree(smoke_runs[0], run)
     last = run / "checkpoints" / "last.pt"
+    words = []
     if damage == "truncated":
         last.write_bytes(last.read_bytes()[:5000])
+    elif damage == "older":  # written by an older crowdrl: its environments' snapshot of format 1
+        from crowdrl.training.checkpoint import load_checkpoint, save_checkpoint
+
+        data = load_checkpoint(last)
+        data["env"]["format"] = 1
+        save_checkpoint(last, {k: v for k, v in data.items() if k not in ("format", "fingerprint")}, data["fingerprint"])
+        words = ["snapshot of format 1; this code restores format 2 only", "resume it with that version"]
     else:
         shutil.copyfile(smoke_runs[1] / "checkpoints" / "last.pt", last)  # another run's (seed 1)
     before = folder_hashes(run)
     proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "last.pt" in proc.stderr, proc.stderr[-2000:]
+    assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
     assert folder_hashes(run) == before
 
 

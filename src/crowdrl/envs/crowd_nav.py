@@ -155,12 +155,6 @@ class CrowdNavEnv(EnvBase):
         """The episode id the next reset without ``"load_episode"`` takes (first sub-env)."""
         return self._next_episode
 
-    def set_next_episode(self, episode: int) -> None:
-        """Continue the stream at ``episode`` (a resumed run starts fresh episodes, not repeats)."""
-        if not is_integer(episode) or episode < 0:
-            raise ValueError(f"episode must be a non-negative integer, got {episode!r}")
-        self._next_episode = int(episode)
-
     def load_episodes(self, episode_ids: torch.Tensor) -> None:
         """Make the next reset load episodes ``episode_ids [B]`` (one per sub-env) instead of the
         next ones of the stream. Works through any ``TransformedEnv``:
@@ -172,7 +166,7 @@ class CrowdNavEnv(EnvBase):
             raise ValueError("episode_ids must be >= 0")
         self._queued = ids.clone()
 
-    SNAPSHOT_FORMAT = 1
+    SNAPSHOT_FORMAT = 2  # 2: every CrowdState field (1, older: no human_mask or obstacles); only the current one restores
 
     def snapshot(self) -> dict:
         """The in-flight episodes (state, ids, per-step info, returns so far) and the stream position,
@@ -193,20 +187,16 @@ class CrowdNavEnv(EnvBase):
         episodes as they were instead of starting new ones. Raises ``ValueError`` naming what
         does not match this env (split, seed, batch, crowd size, dtype)."""
         if not isinstance(snapshot, dict) or snapshot.get("format") != self.SNAPSHOT_FORMAT:
-            raise ValueError(f"not a CrowdNavEnv snapshot of format {self.SNAPSHOT_FORMAT}")
+            found = snapshot.get("format") if isinstance(snapshot, dict) else None
+            raise ValueError(f"its environments are a CrowdNavEnv snapshot of format {found!r}; this code restores format "
+                             f"{self.SNAPSHOT_FORMAT} only (an older crowdrl wrote it: resume it with that version, or "
+                             f"train the run again)")
         mine = {"split": self.split, "seed": self._seed, "num_envs": self.num_envs, "num_humans": self.num_humans,
                 "min_humans": self.config.min_humans}
         for key, value in mine.items():
             if snapshot.get(key) != value:
                 raise ValueError(f"the snapshot's {key} is {snapshot.get(key)!r}, this env's {value!r}")
         tensors = dict(snapshot.get("tensors", {}))
-        if "state.human_mask" not in tensors and "state.human_position" in tensors:  # written before crowds varied
-            tensors["state.human_mask"] = torch.ones(tensors["state.human_position"].shape[:2], dtype=torch.bool)
-        if "state.obstacles" not in tensors and "state.robot_position" in tensors:  # written before obstacles
-            B, (P, V) = tensors["state.robot_position"].shape[0], self.config.obstacles_shape
-            if P == 0:
-                tensors["state.obstacles"] = torch.zeros(B, 0, V, 2, dtype=tensors["state.robot_position"].dtype)
-                tensors["state.obstacle_mask"] = torch.zeros(B, 0, V, dtype=torch.bool)
         missing = {f"state.{n}" for n in CrowdState.__dataclass_fields__} - set(tensors)
         if missing:
             raise ValueError(f"the snapshot lacks {sorted(missing)}")

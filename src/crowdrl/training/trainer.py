@@ -163,21 +163,18 @@ class Trainer:
         return payload
 
     def load_state_dict(self, data: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` of this code version; an older ``last.pt`` (its environments'
+        snapshot of an older format) raises ``ValueError`` saying so, before anything is restored."""
+        self.env.base_env.restore(data.get("env"))  # first: it names an older file's format
         self.loss.load_state_dict(data["loss"])
         self.optimizer.load_state_dict(data["optimizer"])
         self.counters = Counters.from_dict(data["counters"])
         self._set_rng(data)
-        # (event, return, steps, goal distance at the end); older checkpoints kept no goal distance
-        self._pending_episodes = [(*e, math.nan)[:4] for e in data.get("pending_episodes", [])]
-        if self.intrinsic is not None and data.get("intrinsic_stats") is not None:
-            self.intrinsic.last_stats = dict(data["intrinsic_stats"])
-        if self.intrinsic is not None and data.get("intrinsic_norm") is not None:  # absent in older checkpoints
+        self._pending_episodes = [tuple(e) for e in data["pending_episodes"]]  # (event, return, steps, goal distance)
+        if self.intrinsic is not None:
+            if data.get("intrinsic_stats") is not None:
+                self.intrinsic.last_stats = dict(data["intrinsic_stats"])
             self.intrinsic.load_stats_state_dict(data["intrinsic_norm"])
-        if data.get("env") is not None:
-            try:
-                self.env.base_env.restore(data["env"])
-            except ValueError as exc:
-                raise CheckpointError(f"the checkpoint's environments do not fit this run: {exc}") from None
         if self.bonus is not None:
             self.bonus.load_state_dict(data["bonus"])
             if "bonus_optimizer" in data:
@@ -237,8 +234,6 @@ class Trainer:
             self.wandb = WandbMirror(self.dir, self.config_dict, run.logger.project, run.logger.mode,
                                      resume_data.get("wandb_id") if resume_data else None)
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
-        if resume_data and resume_data.get("env") is None:  # an old checkpoint: start fresh episodes
-            self.env.base_env.set_next_episode(c.next_train_episode)
         self._set_schedules()  # a resumed run acts with the schedules of its frame count, not their start
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
             summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
