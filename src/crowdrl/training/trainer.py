@@ -53,8 +53,12 @@ class Counters:
 
     @classmethod
     def from_dict(cls, data: dict) -> "Counters":
-        """The counters of a checkpoint (checkpoints written before ``history`` was dropped hold it: ignored)."""
-        return cls(**{f.name: data[f.name] for f in fields(cls) if f.name in data})
+        """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter."""
+        names = {f.name for f in fields(cls)}
+        if set(data) != names:
+            raise ValueError(f"its counters differ from this code's: missing {sorted(names - set(data))}, "
+                             f"unknown {sorted(set(data) - names)}")
+        return cls(**data)
 
 
 class Trainer:
