@@ -142,7 +142,7 @@ def test_demo_script_trains_tests_and_compares_with_orca(tmp_path):
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "experiments" / "demo.py"
-    proc = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "run"), "preset=smoke", "logger=csv",
+    proc = subprocess.run([sys.executable, str(script), f"out={tmp_path / 'run'}", "preset=smoke", "logger=csv",
                            "train.test_episodes=6"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     files = {p.name for p in (tmp_path / "run").iterdir()}
@@ -151,6 +151,19 @@ def test_demo_script_trains_tests_and_compares_with_orca(tmp_path):
     assert result["test_cases"] == 6 and result["agent"]["episodes"] == 6 and result["orca"]["episodes"] == 6
     assert result["beats_orca"] == (result["agent"]["success_rate"] > result["orca"]["success_rate"])
     assert "ORCA (same cases)" in proc.stdout and "ORCA on success rate" in proc.stdout
+
+
+def test_demo_takes_its_folder_as_one_out_key_like_the_other_commands(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "experiments" / "demo.py"
+    for args in (["out="], [f"out={tmp_path / 'a'}", f"out={tmp_path / 'b'}"]):
+        proc = subprocess.run([sys.executable, str(script), *args, "preset=smoke"], capture_output=True, text=True,
+                              timeout=120)
+        assert proc.returncode == 2 and "out: give one run folder" in proc.stderr, proc.stderr[-2000:]
+    assert not any(tmp_path.iterdir())
 
 
 def test_a_run_group_parses_its_label_and_folders_and_names_what_is_wrong(tmp_path):

@@ -7,7 +7,7 @@ default, test seed 0), runs the ORCA robot baseline on the same cases, prints bo
 and writes the learning curves, a PNG and a GIF of test case 0 into the run folder (printed).
 
     python experiments/demo.py                                  # preset=demo, seed 0
-    python experiments/demo.py seed=1 --out runs/demo-s1        # any Hydra override of conf/
+    python experiments/demo.py seed=1 out=runs/demo-s1          # any Hydra override of conf/; out=: the run folder
     python experiments/demo.py preset=smoke                     # a 30-second wiring check
 """
 
@@ -65,9 +65,14 @@ def format_comparison(agent: dict, orca: dict, label: str) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/demo-<time>-<scenario>-s<seed>-<uid>)")
-    p.add_argument("overrides", nargs="*", help="Hydra overrides of conf/config.yaml, e.g. seed=1")
+    p.add_argument("overrides", nargs="*", metavar="key=value",
+                   help="Hydra overrides of conf/config.yaml, e.g. seed=1; out=<folder>: the run folder "
+                        "(default runs/demo-<time>-<scenario>-s<seed>-<uid>)")
     args = p.parse_args(argv)
+    outs = [o.split("=", 1)[1] for o in args.overrides if o.startswith("out=")]
+    args.overrides = [o for o in args.overrides if not o.startswith("out=")]
+    if len(outs) > 1 or (outs and not outs[0]):
+        p.error(f"out: give one run folder, got {outs}")
     from omegaconf import OmegaConf
 
     from crowdrl.training import CheckpointError, ConfigError
@@ -85,7 +90,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from crowdrl.training.run_folder import RunFolderRefused
 
-    out = args.out or default_out(run)
+    out = Path(outs[0]) if outs else default_out(run)
     method = f"{run.encoder.name} + {run.exploration.name}" + (" + planning" if run.planning.enabled else "")
     print(f"training {method} on {run.env.scenario}, preset {run.preset}, "
           f"seed {run.seed}: {run.train.total_frames} frames -> {out}", flush=True)

@@ -359,7 +359,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
     _check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
-           f"hydra.run.dir=<folder> (train.py), --out <folder> (demo.py) or resume=<folder>")
+           f"hydra.run.dir=<folder> (train.py), out=<folder> (demo.py) or resume=<folder>")
     check_device(run.device)
     if resources:
         check_resources(run)
