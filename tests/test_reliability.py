@@ -293,3 +293,18 @@ def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrup
     assert not differing, f"weights differ after the resume: {differing[:5]}"
     assert metrics == ref_metrics
     assert rows == ref_rows
+
+
+def test_logger_wandb_mirrors_the_scalars_into_an_offline_run_whose_id_the_checkpoint_keeps(tmp_path):
+    """``logger=wandb`` (the default outside tests, offline): TorchRL's WandbLogger writes an offline run in
+    the run folder holding the logged scalars; ``last.pt`` records its id, so a resume continues that run."""
+    import torch
+
+    run = tmp_path / "run"
+    proc = subprocess.run([*TRAIN, "preset=smoke", "logger=wandb", "logger.render=false", "train.test_episodes=4",
+                           f"hydra.run.dir={run}"], env={**ENV, "WANDB_MODE": "offline"}, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    wandb_id = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["wandb_id"]
+    (record,) = run.glob(f"wandb/offline-run-*-{wandb_id}/run-{wandb_id}.wandb")
+    assert b"val/success_rate" in record.read_bytes() and b"train/success_rate" in record.read_bytes()

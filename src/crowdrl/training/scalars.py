@@ -72,24 +72,28 @@ class ScalarLog:
 
 
 class WandbMirror:
-    """Mirror of the scalar rows into a wandb run (offline unless the mode says otherwise)."""
+    """Mirror of the scalar rows into a wandb run, through TorchRL's ``WandbLogger`` (offline unless the
+    mode says otherwise); a resumed run passes its ``resume_id`` and continues the same wandb run."""
 
     def __init__(self, run_dir: Path, config: dict, project: str, mode: str, resume_id: str | None) -> None:
         try:
-            import wandb
+            import wandb  # noqa: F401
         except ImportError as exc:
             from crowdrl._extras import missing
 
             raise missing("wandb", "train", "logger=wandb (logger=csv does without)") from exc
+        from torchrl.record.loggers.wandb import WandbLogger
 
         os.environ.setdefault("WANDB_SILENT", "true")
-        mode = os.environ.get("WANDB_MODE", mode)
-        self.run = wandb.init(project=project, dir=str(run_dir), config=config, mode=mode,
-                              id=resume_id, resume="allow" if resume_id else None, reinit="finish_previous")
-        self.id = self.run.id
+        # mode goes to wandb.init: WandbLogger's offline=True would set WANDB_MODE for the whole process
+        self.logger = WandbLogger(exp_name=Path(run_dir).name, save_dir=str(run_dir), id=resume_id, project=project,
+                                  log_env_packages=False, mode=os.environ.get("WANDB_MODE", mode), config=config,
+                                  reinit="finish_previous")
+        self.id = self.logger.experiment.id
 
     def log(self, row: dict[str, Any]) -> None:
-        self.run.log({k: v for k, v in row.items() if isinstance(v, (int, float))}, step=int(row.get("frames", 0)))
+        numbers = {k: v for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        self.logger.log_metrics(numbers, step=int(row.get("frames", 0)), override_global_step=True)  # x: frames
 
     def close(self) -> None:
-        self.run.finish()
+        self.logger.experiment.finish()
