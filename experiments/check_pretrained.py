@@ -68,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in have]
     if unknown:
         p.error(f"--agents: no pretrained agent {', '.join(map(repr, unknown))}; available: {', '.join(have) or 'none'}")
+    if not 0 <= args.tolerance < 1:
+        p.error(f"--tolerance: a change of an outcome rate in [0, 1), got {args.tolerance}")
     if args.jobs < 1:
         p.error(f"--jobs: must be >= 1, got {args.jobs}")
     todo = [(PRETRAINED / n, r) for n in names for r in json.loads((PRETRAINED / n / "eval.json").read_text())]

@@ -11,6 +11,11 @@ from typing import Any
 from crowdrl.files import atomic_write_bytes, atomic_write_with, dumps_json
 
 
+def _json_line(row: dict[str, Any]) -> str:
+    """One row of ``scalars.jsonl``: strict JSON (NaN/inf as null), keys sorted."""
+    return dumps_json(row, indent=None, sort_keys=True) + "\n"
+
+
 class ScalarLog:
     """Append-only scalar log with one strict JSON line per row (``scalars.jsonl``), fsynced per row;
     a non-finite value (NaN, ±inf) is written as ``null``, as in every JSON file crowdrl writes.
@@ -27,7 +32,7 @@ class ScalarLog:
         self._f = open(self.path, "a", encoding="utf-8")
 
     def log(self, row: dict[str, Any]) -> None:
-        self._f.write(dumps_json(row, indent=None, sort_keys=True) + "\n")  # NaN/inf as null: strict JSON
+        self._f.write(_json_line(row))
         self._f.flush()
         os.fsync(self._f.fileno())
 
@@ -46,7 +51,7 @@ class ScalarLog:
         self._f.close()
         rows = self.rows()
         kept = [r for r in rows if r.get("frames", 0) <= frames]
-        atomic_write_bytes(self.path, "".join(dumps_json(r, indent=None, sort_keys=True) + "\n" for r in kept).encode())
+        atomic_write_bytes(self.path, "".join(map(_json_line, kept)).encode())
         self._f = open(self.path, "a", encoding="utf-8")
         return len(rows) - len(kept)
 
