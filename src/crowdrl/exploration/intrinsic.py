@@ -291,13 +291,21 @@ class IntrinsicRewardTransform(Transform):
         return out
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.add_bonus(tensordict)
+
+    def add_bonus(self, tensordict: TensorDictBase, *, learn: bool = True, record: bool = True) -> TensorDictBase:
+        """``r = r_ext + beta * r_in`` on a batch of transitions (what sampling does). ``learn=False``:
+        the bonus takes no training step on it (even with ``update_bonus``); ``record=False``:
+        :attr:`last_stats` keeps the last recorded batch's scalars. The options' running statistics
+        are updated either way. E.g. transitions built from a sampled batch (counterfactual ones)
+        get the bonus with ``add_bonus(batch, learn=False, record=False)``."""
         r_ext = self._get(tensordict, self.reward_key)
         lead = tuple(tensordict.batch_size)
         if r_ext.shape[: len(lead)] != lead:
             raise ValueError(f"reward {self.reward_key!r} shaped {tuple(r_ext.shape)} does not start with the batch {lead}")
         inputs = self.bonus_input(tensordict)
         beta = self.current_beta()
-        if self.update_bonus:
+        if self.update_bonus and learn:
             r_in, update_stats = self.bonus.bonus_and_update(inputs)
         else:
             with torch.no_grad():
@@ -325,7 +333,8 @@ class IntrinsicRewardTransform(Transform):
         tensordict.set(self.reward_ext_key, r_ext)
         tensordict.set(self.reward_int_key, r_in_out.contiguous())
         tensordict.set(self.reward_key, total)
-        self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
+        if record:
+            self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
         return tensordict
 
     @staticmethod

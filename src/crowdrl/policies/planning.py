@@ -9,8 +9,8 @@ predicts the state after each of them and scores it:
 and acts by the best ``score_depth``. ``depth = 1`` is upstream's planner (the top 10 actions,
 one step ahead).
 
-* ŝ′: the robot's next state from the exact unicycle kinematics
-  (:func:`crowdrl.sim.kinematics.decode_action`, then ``p + v·Δt``); the humans' from a
+* ŝ′: the robot's next state from the exact unicycle kinematics (the simulator's one-step model,
+  :func:`crowdrl.sim.lookahead.look_ahead`, shared with counterfactual experience); the humans' from a
   predictor (:mod:`crowdrl.models.predictor`), one prediction per state (the humans do not see
   the robot, so it serves every candidate action).
 * r̂ and end̂: the simulator's own :func:`crowdrl.sim.crowd.step_reward` on that step, the
@@ -42,8 +42,8 @@ from torch import Tensor, nn
 
 from crowdrl.envs.robot_centric import entity_tokens, obstacles_centric, robot_centric
 from crowdrl.sim.config import CrowdConfig
-from crowdrl.sim.crowd import step_reward
-from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
+from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
+from crowdrl.sim.lookahead import look_ahead
 
 
 class Plan(NamedTuple):
@@ -137,32 +137,21 @@ class OnlinePlanner(TensorDictModuleBase):
     def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int,
                obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(score_depth [M, w], candidates [M, w])`` for states ``[M]`` whose ``Q(s, ·)`` is ``q``."""
-        cfg, dt = self.config, self.config.time_step
+        cfg = self.config
         M, N = humans.shape[0], humans.shape[1]
         w = self.width
         q_top, cand = q.topk(w, dim=-1)  # [M, w], best first
-        # the robot after each candidate: the simulator's kinematics
-        velocity, heading = decode_action("unicycle", cand.reshape(-1), robot[:, 8:9].expand(M, w).reshape(-1),
-                                          self.table.to(robot.dtype), cfg.robot_v_pref)
-        velocity, heading = velocity.reshape(M, w, 2), heading.reshape(M, w, 1)
-        position = robot[:, None, 0:2].expand(M, w, 2)
-        robot_next = torch.cat((position + velocity * dt, velocity, robot[:, None, 4:8].expand(M, w, 4), heading), -1)
-        # the crowd after the step: one prediction per state
+        # the crowd after the step: one prediction per state (the humans do not see the robot)
         humans_next = self.predictor(robot, humans, humans_mask)  # [M, N, 5]
-        if cfg.collision_velocity == "start":
-            human_velocity = humans[..., 2:4]
-        else:
-            human_velocity = (humans_next[..., 0:2] - humans[..., 0:2]) / dt
-        mask_w = None if humans_mask is None else humans_mask[:, None].expand(M, w, N)
         walls = wall_mask = None
         if obstacles is not None:  # the observed edges as wall polygons [M, K, 2, 2], for the sweep
             K = obstacles.shape[1]
             walls = obstacles.reshape(M, K, 2, 2)
             wall_mask = (torch.ones(M, K, dtype=torch.bool, device=robot.device) if obstacles_mask is None
                          else obstacles_mask)[..., None].expand(M, K, 2)
-        judged = step_reward(cfg, position, velocity, robot[:, None, 5:7].expand(M, w, 2),
-                             humans[:, None, :, 0:2].expand(M, w, N, 2), human_velocity[:, None].expand(M, w, N, 2),
-                             mask_w, walls, wall_mask)
+        # the robot after each candidate and the step's reward: the simulator's one-step model
+        robot_next, judged = look_ahead(cfg, self.table, robot, humans, humans_next, cand, humans_mask, walls, wall_mask)
+        mask_w = None if humans_mask is None else humans_mask[:, None].expand(M, w, N)
         # the value after the step: V_0 = max Q, V_k = the best score of the next level
         flat_robot = robot_next.reshape(M * w, -1)
         flat_humans = humans_next[:, None].expand(M, w, N, humans.shape[-1]).reshape(M * w, N, -1)

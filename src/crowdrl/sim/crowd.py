@@ -5,13 +5,13 @@ Pure torch on :class:`CrowdState`; no TorchRL here (``crowdrl.envs`` wraps it).
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.kinematics import wrap_angle
 from crowdrl.sim.obstacles import ObstacleEdges, path_obstacle_distance
 from crowdrl.sim.orca import orca_solve, require_finite
 from crowdrl.sim.scenarios import new_human_goals
@@ -235,7 +235,7 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
             speed > 0, torch.atan2(robot_velocity[:, 1], robot_velocity[:, 0]), state.robot_heading
         )
     # wrap to [-pi, pi): the observation stays bounded; cos/sin are unchanged
-    robot_heading = torch.remainder(robot_heading + math.pi, 2 * math.pi) - math.pi
+    robot_heading = wrap_angle(robot_heading)
 
     # absent humans (a crowd smaller than N) take no part: not in ORCA, collisions or the reward
     human_mask = state.human_mask if cfg.variable_crowd else None

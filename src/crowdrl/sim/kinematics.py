@@ -51,6 +51,11 @@ def unicycle_step(heading: Tensor, speed: Tensor, rotation: Tensor) -> tuple[Ten
     return new_heading, velocity
 
 
+def wrap_angle(angle: Tensor) -> Tensor:
+    """``angle`` wrapped to ``[-pi, pi)``: how the simulator stores the robot's heading (cos and sin unchanged)."""
+    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+
+
 def check_velocities(action: Tensor, batch_size: int) -> Tensor:
     """Validate a ``[B, 2]`` floating tensor of finite robot velocities (holonomic actions)."""
     if not action.dtype.is_floating_point:

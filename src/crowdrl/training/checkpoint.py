@@ -44,6 +44,8 @@ def config_fingerprint(config: dict) -> str:
                 *(LIDAR_KEYS if not keep["env"].get("lidar_rays") else ())}
         keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
+    if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":
+        train.pop("counterfactual")  # off: the fingerprint of a run recorded before the key
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
               "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
         train.pop(k, None)

@@ -121,6 +121,24 @@ class LoggerConfig:
     render: bool = True  # after the test: learning_curves.png and a PNG + GIF of test case 0
 
 
+COUNTERFACTUAL_MODES = ("off", "second_update", "merged")
+COUNTERFACTUAL_ACTIONS = ("topk", "all", "random")
+
+
+@dataclass
+class CounterfactualConfig:
+    """Counterfactual experience (``docs/mdp.md``, "Counterfactual experience"): for each sampled
+    state, ``k`` alternative actions (``topk`` by the online Q, ``all`` 81, or ``random`` distinct
+    ones) stepped exactly by the simulator's one-step model against the humans' real next state.
+    ``second_update``: a second double-DQN step on them after each real one (SG-D3QN's trainer);
+    ``merged``: one step on the real and counterfactual terms, the latter weighted ``weight``."""
+
+    mode: str = "off"
+    actions: str = "topk"
+    k: int = 5  # alternatives per sampled state (actions=all: every action, k is not read)
+    weight: float = 0.5  # merged: loss = (1 - weight) * real + weight * counterfactual
+
+
 @dataclass
 class TrainConfig:
     num_envs: int = 64  # environments stepped at once by the collector
@@ -145,6 +163,7 @@ class TrainConfig:
     # the D3QN update (target, forwards, backward), and the planner's predictor update, each as one
     # torch.compile graph (bench_train.py --loss)
     compile_loss: bool = True
+    counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
 
 
 @dataclass
@@ -348,6 +367,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
            f"values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, got {t.gamma}")
     _check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
     _check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
+    check_counterfactual(run)
     p = run.planning
     _check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
     _check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
@@ -405,8 +425,11 @@ def transition_bytes(run: RunConfig) -> int:
     low, high = crowd_range(run.env)
     obs = 4 * (ROBOT_OBS_DIM + HUMAN_OBS_DIM * high) + (high if low < high else 0)
     out = 2 * obs + 3 * 8 + 4 + 2
-    if run.planning.enabled and run.planning.predictor == "learned":
+    if (run.planning.enabled and run.planning.predictor == "learned") or counterfactual_on(run):
         out += 4 * (ROBOT_OBS_DIM + 2 * HUMAN_OBS_DIM * high)
+    if counterfactual_on(run) and sees_obstacles(run):  # the episode's map: P polygons of V vertices and their mask
+        P, V = CrowdConfig(scenario=run.env.scenario, **{k: getattr(run.env, k) for k in OBSTACLE_KEYS}).obstacles_shape
+        out += P * V * (2 * 4 + 1)
     return out
 
 
@@ -504,6 +527,26 @@ def _check_intrinsic_options(x: ExplorationConfig) -> None:
     _check(x.reward_clip is None or x.reward_clip > 0, "exploration.reward_clip", f"must be > 0 or null, got {x.reward_clip}")
     _check(x.obs_clip > 0, "exploration.obs_clip", f"must be > 0, got {x.obs_clip}")
     _one_of(x.icm_feature_norm, "exploration.icm_feature_norm", FEATURE_NORMS)
+
+
+def check_counterfactual(run: RunConfig) -> None:
+    """``train.counterfactual``'s keys; it needs humans that ignore the robot (their real next state is
+    then the next state after any action) and the unicycle's discrete actions."""
+    c = run.train.counterfactual
+    _one_of(c.mode, "train.counterfactual.mode", COUNTERFACTUAL_MODES)
+    _one_of(c.actions, "train.counterfactual.actions", COUNTERFACTUAL_ACTIONS)
+    _check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
+           f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
+    _check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
+    if c.mode != "off" and getattr(run.env, "robot_visible", False):
+        raise ConfigError("train.counterfactual.mode: counterfactual experience replays the humans' real next state "
+                          "after another action, which is exact only while they ignore the robot; env.robot_visible "
+                          "is true (set train.counterfactual.mode=off or env.robot_visible=false)")
+
+
+def counterfactual_on(run: RunConfig) -> bool:
+    """Whether ``run`` learns from counterfactual experience."""
+    return run.train.counterfactual.mode != "off"
 
 
 def crowd_range(env: EnvConfig) -> tuple[int, int]:

@@ -19,7 +19,7 @@ from torchrl.modules import EGreedyModule
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.evaluation.rollout import crowd_env_of
-from crowdrl.exploration.intrinsic import seeded_init
+from crowdrl.exploration.intrinsic import IntrinsicRewardTransform, seeded_init
 from crowdrl.models import make_q_actor
 from crowdrl.models.lazy_compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
@@ -27,7 +27,9 @@ from crowdrl.policies import OnlinePlanner
 from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
 from crowdrl.training.config import RunConfig, crowd_range, sees_obstacles
 from crowdrl.training.loss import D3QNLoss
+from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.nstep import NStepReturn
+from crowdrl.training.parts import ReplayOnly, UpdatePart
 from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, uses_one_step_successor
 
 OBS_KEYS = ("robot_rc", "humans_rc")
@@ -147,8 +149,8 @@ def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None
 
 def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None,
                 keys: tuple[str, ...] = OBS_KEYS) -> tuple[TensorDictReplayBuffer, Transform | None]:
-    """The replay buffer of observations ``keys``: n-step returns at sample time, then the
-    intrinsic bonus (ICM/RE3).
+    """The replay buffer of observations ``keys``: n-step returns when a batch is written, then the
+    intrinsic bonus (ICM/RE3) when one is sampled.
 
     Returns the buffer and the intrinsic-reward transform (``None`` without a bonus).
     """
@@ -164,6 +166,18 @@ def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = N
     return buffer, intrinsic
 
 
+def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
+                     intrinsic: IntrinsicRewardTransform | None = None) -> UpdatePart:
+    """The gradient steps of one update (:mod:`crowdrl.training.parts`): the sampled batch alone, or with
+    ``train.counterfactual.mode`` its counterfactual transitions too (the intrinsic bonus added to them)."""
+    c = run.train.counterfactual
+    if c.mode == "off":
+        return ReplayOnly()
+    bonus = None if intrinsic is None else (lambda td: intrinsic.add_bonus(td, learn=False, record=False))
+    return CounterfactualExperience(crowd, net, keys, mode=c.mode, actions=c.actions, k=c.k, weight=c.weight,
+                                    entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1), reward_bonus=bonus)
+
+
 def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Collector:
     """A single-process collector of ``num_envs x steps_per_batch`` frames per batch."""
     t = run.train
@@ -173,4 +187,4 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
 
 __all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "crowd_config", "make_actor", "make_buffer",
            "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer", "make_predictor_of",
-           "obs_keys", "stored_keys"]
+           "make_update_part", "obs_keys", "stored_keys"]

@@ -38,6 +38,9 @@ from torchrl.objectives import LossModule
 from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
 
 
+WEIGHT_KEY = "loss_weight"  # optional [batch] weights of a batch's squared TD errors (they sum to 1)
+
+
 class D3QNBatch(NamedTuple):
     """The tensors of a sampled batch that the loss reads (``[batch, ...]``)."""
 
@@ -47,6 +50,7 @@ class D3QNBatch(NamedTuple):
     reward: Tensor  # [batch]
     terminated: Tensor  # [batch] bool
     steps: Tensor  # [batch] int64: m, the steps to the bootstrap state (the discount is γ^m)
+    weight: Tensor | None = None  # [batch]: the loss is sum weight·(Q - y)² (None: the mean)
 
 
 class D3QNLoss(LossModule):
@@ -123,8 +127,10 @@ class D3QNLoss(LossModule):
             raise ValueError(f"actions must lie in 0..{num_actions - 1}")
         steps = td.get("steps_to_next_obs", None)
         steps = torch.ones(n, dtype=torch.int64, device=index.device) if steps is None else steps.reshape(n)
+        weight = td.get(WEIGHT_KEY, None)
         return D3QNBatch(obs, next_obs, index, td.get(("next", "reward")).reshape(n),
-                         td.get(("next", "terminated")).reshape(n), steps)
+                         td.get(("next", "terminated")).reshape(n), steps,
+                         None if weight is None else weight.reshape(n).to(obs[0].dtype))
 
     def num_actions(self, td: TensorDictBase) -> int:
         """Q-values per state (from one cheap forward pass: probes the network on one row)."""
@@ -166,10 +172,12 @@ class D3QNLoss(LossModule):
 
     def objective(self, params: dict[str, Tensor] | None, b: D3QNBatch, y: Tensor
                   ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
-        """``mean (Q_params(s, a) - y)²`` and, detached, ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
+        """``mean (Q_params(s, a) - y)²`` (``sum weight·(Q - y)²`` for a weighted batch) and, detached,
+        ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
         q = self._q(self.net, params, b.obs).gather(-1, b.action).squeeze(-1)
         diff = q - y
-        return diff.pow(2).mean(), (q.detach().mean(), diff.detach().abs().mean())
+        loss = diff.pow(2).mean() if b.weight is None else (b.weight * diff.pow(2)).sum()
+        return loss, (q.detach().mean(), diff.detach().abs().mean())
 
     def gradients(self, params: dict[str, Tensor], target_params: dict[str, Tensor], b: D3QNBatch
                   ) -> tuple[dict[str, Tensor], Tensor, tuple[Tensor, Tensor]]:
@@ -203,4 +211,4 @@ class D3QNLoss(LossModule):
         return TensorDict({"loss": loss, "q_mean": q_mean, "td_error_abs": td_abs}, [])
 
 
-__all__ = ["D3QNBatch", "D3QNLoss"]
+__all__ = ["D3QNBatch", "D3QNLoss", "WEIGHT_KEY"]

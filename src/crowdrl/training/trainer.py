@@ -29,7 +29,7 @@ from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
 from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
-                                        make_optimizer, make_predictor_of, obs_keys, stored_keys)
+                                        make_optimizer, make_predictor_of, make_update_part, obs_keys, stored_keys)
 from crowdrl.training.predictor_loss import PredictorLoss
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
@@ -129,12 +129,16 @@ class Trainer:
         if self.bonus is not None:
             self.bonus.to(run.device)
         self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames, self.obs_keys)
+        # the gradient steps of one update (the sampled batch; with counterfactual experience, simulated ones too)
+        self.update_part = make_update_part(run, self.net, self.obs_keys, self.crowd_cfg, self.intrinsic)
+        self.stored_keys += [k for k in self.update_part.stored_keys() if k not in self.stored_keys]
         self.log = None
         self.wandb = None
         self._restored: dict[str, Any] | None = None
         self._stop_requested = False
         self.predictor_loss = math.nan  # mean predictor loss of the last batch's updates (NaN: none)
         self._predictor_loss_sum = 0.0
+        self._part_losses: dict[str, list[float]] = {}  # losses of the update's later batches since the last log
         # (event, return, steps, goal distance) of finished episodes not yet logged (logged by 20)
         self._pending_episodes: list[tuple[int, float, int, float]] = []
 
@@ -154,6 +158,7 @@ class Trainer:
             "intrinsic_stats": dict(self.intrinsic.last_stats) if self.intrinsic is not None else None,
             # the running statistics of the bonus's normalisers (obs, reward, terminal value)
             "intrinsic_norm": self.intrinsic.stats_state_dict() if self.intrinsic is not None else None,
+            "update_part": self.update_part.state_dict(),
         }
         if self.bonus is not None:
             payload["bonus"] = self.bonus.state_dict()
@@ -175,6 +180,7 @@ class Trainer:
         self.counters = Counters.from_dict(data["counters"])
         self._set_rng(data)
         self._pending_episodes = [tuple(e) for e in data["pending_episodes"]]  # (event, return, steps, goal distance)
+        self.update_part.load_state_dict(data.get("update_part", {}))  # a checkpoint before parts: none had state
         if self.intrinsic is not None:
             if data.get("intrinsic_stats") is not None:
                 self.intrinsic.last_stats = dict(data["intrinsic_stats"])
@@ -332,11 +338,19 @@ class Trainer:
         return total / max(n, 1)
 
     def update_once(self, sample: TensorDictBase) -> float:
-        """One gradient step on a sampled batch (and the target copy when it is due); returns the loss."""
+        """One update on a sampled batch: a gradient step on each batch of the update part (the sample,
+        then any simulated one), the predictor's step, the target copy when it is due; returns the
+        loss of the first batch."""
         if self.run.exploration.name == "noisy":
             reset_noise(self.loss)  # independent noise for the online and the target network
-        loss = self.loss.loss_and_grad(sample)["loss"]  # gradients into the Q network's .grad
-        self.optimizer.step()
+        loss = None
+        for name, batch in self.update_part.batches(sample):
+            value = self.loss.loss_and_grad(batch)["loss"]  # gradients into the Q network's .grad
+            self.optimizer.step()
+            if loss is None:
+                loss = value
+            else:
+                self._part_losses.setdefault(name, []).append(float(value))
         if self.predictor_optimizer is not None:
             self._predictor_loss_sum += self.predictor_step(sample)
         self.counters.updates += 1
@@ -363,7 +377,9 @@ class Trainer:
             metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
-               **{f"val/{k}": v for k, v in metrics.as_dict().items()}}
+               **{f"val/{k}": v for k, v in metrics.as_dict().items()},
+               # how far below the running best score this validation fell (0 at a new best): a collapse shows here
+               "val/drop_from_best": max(0.0, c.best_val - score) if math.isfinite(c.best_val) else 0.0}
         if score > c.best_val:
             c.best_val, c.best_frames = score, c.frames
             best = {"net": self.net.state_dict(), "config": self.config_dict, "frames": c.frames, "val": metrics.as_dict()}
@@ -394,8 +410,11 @@ class Trainer:
             "train/loss": loss_value,
             **({"train/predictor_loss": self.predictor_loss} if self.predictor_optimizer is not None else {}),
             **({f"train/intrinsic_{k}": v for k, v in self.intrinsic.last_stats.items()} if self.intrinsic else {}),
+            **{f"train/loss_{name}": sum(v) / len(v) for name, v in self._part_losses.items() if v},
+            **{f"train/{k}": v for k, v in self.update_part.scalars().items()},
             **{f"time/{k}_s": v for k, v in timers.items()},
         })
+        self._part_losses.clear()
 
     def emit(self, row: dict[str, Any]) -> None:
         """Append a row of scalars to the run's log (and wandb when on)."""

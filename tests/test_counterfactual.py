@@ -1,0 +1,152 @@
+"""Counterfactual experience: exact against the env, its update arrangements, its config keys."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torchrl.envs import TransformedEnv
+
+from crowdrl.envs import CrowdNavEnv, RobotCentric
+from crowdrl.models.qnet import make_q_network
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.crowd import COLLISION, SUCCESS
+from crowdrl.training import ConfigError, validate
+from crowdrl.training.checkpoint import config_fingerprint
+from crowdrl.training.config import to_dict
+from crowdrl.training.counterfactual import CounterfactualExperience
+from crowdrl.training.factories import obs_keys
+from crowdrl.training.loss import WEIGHT_KEY, D3QNLoss
+
+CASES = [  # scenario, crowd, steps: fixed and variable crowds, open space and walls (circle's robots, heading
+    # straight through the centre, all meet a human there: its steps end in collisions, the others' in goals too)
+    ("circle", {"num_humans": 5}, 60),
+    ("square", {"num_humans": 4, "min_humans": 1}, 60),
+    ("corridor", {"num_humans": 4}, 60),
+]
+
+
+def _env(scenario: str, crowd: dict, batch: int) -> TransformedEnv:
+    cfg = CrowdConfig(scenario=scenario, **crowd)
+    base = CrowdNavEnv(scenario, num_envs=batch, num_humans=cfg.num_humans, config=cfg, seed=3, split="train")
+    return TransformedEnv(base, RobotCentric(entities=cfg.obstacles_shape[0] > 0))
+
+
+def _toward_goal(robot: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Full speed with the rotation nearest to the goal's bearing, a random action one time in ten:
+    episodes that reach their goals and episodes that collide."""
+    bearing = torch.atan2(robot[:, 6] - robot[:, 1], robot[:, 5] - robot[:, 0]) - robot[:, 8]
+    bearing = torch.remainder(bearing + math.pi, 2 * math.pi) - math.pi
+    rotation = ((bearing.clamp(-math.pi / 6, math.pi / 6) + math.pi / 6) / (math.pi / 3) * 15).round().long()
+    greedy = 1 + 5 * rotation + 4
+    random = torch.randint(0, 81, greedy.shape, generator=gen)
+    return torch.where(torch.rand(greedy.shape, generator=gen) < 0.1, random, greedy)
+
+
+@pytest.mark.parametrize("scenario, crowd, steps", CASES, ids=[c[0] for c in CASES])
+def test_counterfactual_transitions_equal_the_env_stepping_each_alternative(scenario, crowd, steps):
+    """Restore the env before a step, take each alternative action: reward, termination and every
+    observation the network reads equal what the one-step model built from the real transition."""
+    torch.manual_seed(0)
+    B, k = 16, 4
+    env = _env(scenario, crowd, B)
+    cfg = env.base_env.config
+    keys = obs_keys(cfg)
+    part = CounterfactualExperience(cfg, make_q_network("sarl"), keys, actions="random", k=k,
+                                    entities=cfg.obstacles_shape[0] > 0)
+    gen = torch.Generator().manual_seed(1)
+    td = env.reset()
+    compared, events = 0, torch.zeros(4, dtype=torch.int64)
+    for _ in range(steps):
+        snap = env.base_env.snapshot()
+        td["action"] = _toward_goal(td["robot"], gen)
+        real = env.step(td.clone())
+        alternatives = torch.randint(0, 81, (B, k), generator=gen)
+        alternatives[:, 0] = td["action"]  # the taken action too: the model must give back the real step
+        fake = part.transitions(real, alternatives).reshape(B, k)
+        for j in range(k):
+            env.base_env.restore(snap)
+            again = env.reset()
+            again["action"] = alternatives[:, j]
+            out = env.step(again)["next"]
+            got = fake[:, j]
+            torch.testing.assert_close(got["next", "reward"], out["reward"], atol=1e-5, rtol=0)
+            assert torch.equal(got["next", "terminated"], out["terminated"])
+            for key in keys:
+                torch.testing.assert_close(got["next", key], out[key], atol=1e-5, rtol=0)
+                torch.testing.assert_close(got[key], real[key])
+            compared += B
+            events += torch.bincount(out["event"].reshape(-1), minlength=4)
+        env.base_env.restore(snap)
+        again = env.reset()
+        again["action"] = td["action"]
+        _, td = env.step_and_maybe_reset(again)
+    assert compared == steps * B * k
+    assert events[COLLISION] > 0 and (scenario == "circle" or events[SUCCESS] > 0)  # ends of both kinds compared
+
+
+def test_topk_all_and_random_alternatives():
+    torch.manual_seed(0)
+    env = _env("circle", {"num_humans": 3}, 8)
+    cfg, keys = env.base_env.config, obs_keys(env.base_env.config)
+    net = make_q_network("sarl")
+    td = env.rollout(3, break_when_any_done=False)[:, -1]
+    top = CounterfactualExperience(cfg, net, keys, k=5).alternatives(td)
+    q = net(*(td[k] for k in keys))
+    assert torch.equal(top, q.topk(5, dim=-1).indices)
+    every = CounterfactualExperience(cfg, net, keys, actions="all").alternatives(td)
+    assert every.shape == (8, 81) and torch.equal(every[3], torch.arange(81))
+    part = CounterfactualExperience(cfg, net, keys, actions="random", k=7, seed=5)
+    state = part.state_dict()
+    drawn = part.alternatives(td)
+    assert all(len(set(row.tolist())) == 7 for row in drawn)  # distinct per state
+    part.load_state_dict(state)
+    assert torch.equal(part.alternatives(td), drawn)  # the generator's state restores the draw
+
+
+def _sample(batch: int = 6):
+    torch.manual_seed(0)
+    env = _env("circle", {"num_humans": 3}, batch)
+    td = env.rollout(4, break_when_any_done=False)[:, -1]
+    td["steps_to_next_obs"] = torch.ones(batch, 1, dtype=torch.int64)
+    return env.base_env.config, obs_keys(env.base_env.config), td
+
+
+def test_second_update_yields_the_real_batch_then_the_counterfactual_one():
+    cfg, keys, td = _sample()
+    part = CounterfactualExperience(cfg, make_q_network("sarl"), keys, k=5)
+    batches = list(part.batches(td))
+    assert [name for name, _ in batches] == ["real", "counterfactual"]
+    assert batches[0][1] is td and batches[1][1].batch_size == (30,)
+    assert set(part.scalars()) == {"counterfactual_collision_rate", "counterfactual_goal_rate", "counterfactual_reward"}
+
+
+def test_merged_loss_is_the_weighted_sum_of_the_two_means():
+    cfg, keys, td = _sample()
+    net = make_q_network("sarl")
+    loss = D3QNLoss(net, keys, gamma=0.97)
+    part = CounterfactualExperience(cfg, net, keys, mode="merged", k=5, weight=0.3)
+    (name, merged), = list(part.batches(td))
+    assert name == "merged" and merged.batch_size == (36,)
+    torch.testing.assert_close(merged[WEIGHT_KEY].sum(), torch.tensor(1.0))
+    fake = CounterfactualExperience(cfg, net, keys, k=5).counterfactual_batch(td)
+    expected = 0.7 * loss(td)["loss"] + 0.3 * loss(fake)["loss"]
+    torch.testing.assert_close(loss(merged)["loss"], expected)
+
+
+def test_config_keys_are_checked_naming_the_key():
+    for key, value, words in (("mode", "sometimes", "train.counterfactual.mode"),
+                              ("actions", "best", "train.counterfactual.actions"),
+                              ("k", 0, "train.counterfactual.k"), ("k", 82, "train.counterfactual.k"),
+                              ("weight", 1.5, "train.counterfactual.weight")):
+        with pytest.raises(ConfigError, match=words):
+            validate({"train": {"counterfactual": {"mode": "merged", key: value}}}, resources=False)
+
+
+def test_off_keeps_the_fingerprint_of_runs_recorded_before_the_key():
+    off = to_dict(validate({}, resources=False))
+    older = {**off, "train": {k: v for k, v in off["train"].items() if k != "counterfactual"}}
+    assert config_fingerprint(off) == config_fingerprint(older)
+    on = to_dict(validate({"train": {"counterfactual": {"mode": "second_update"}}}, resources=False))
+    assert config_fingerprint(on) != config_fingerprint(off)
