@@ -150,3 +150,22 @@ def test_off_keeps_the_fingerprint_of_runs_recorded_before_the_key():
     assert config_fingerprint(off) == config_fingerprint(older)
     on = to_dict(validate({"train": {"counterfactual": {"mode": "second_update"}}}, resources=False))
     assert config_fingerprint(on) != config_fingerprint(off)
+
+
+def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(tmp_path):
+    from omegaconf import OmegaConf
+
+    from crowdrl.cli.reproduce import PlanError, make_plan, run_overrides
+    from crowdrl.resources import config_dir
+
+    cfg = OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce.yaml"))
+    cfg.pop("hydra")
+    cfg["out"] = str(tmp_path)
+    plan = make_plan(cfg)
+    assert plan.manifest()["counterfactual"]["mode"] == "off"
+    assert not any("counterfactual" in o for o in run_overrides(plan, plan.methods[0]))
+    plan = make_plan({**cfg, "counterfactual": {"mode": "second_update", "k": 3}})
+    assert plan.manifest()["counterfactual"] == {"mode": "second_update", "actions": "topk", "k": 3, "weight": 0.5}
+    assert "train.counterfactual.k=3" in run_overrides(plan, plan.methods[0])
+    with pytest.raises(PlanError, match="counterfactual"):
+        make_plan({**cfg, "counterfactual": {"modes": "merged"}})

@@ -53,7 +53,8 @@ LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
 KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher",
-        "threads", "reps", "out", "planning"}
+        "threads", "reps", "out", "planning", "counterfactual"}
+COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}  # train.counterfactual's defaults
 
 
 class PlanError(ValueError):
@@ -95,6 +96,7 @@ class Plan:
     reps: int
     out: Path
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled), as the paper's did
+    counterfactual: tuple[tuple[str, Any], ...] = tuple(COUNTERFACTUAL_OFF.items())  # every run's train.counterfactual
 
     @property
     def methods(self) -> tuple[Method, ...]:
@@ -108,7 +110,7 @@ class Plan:
 
         out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
                "train_scenario": self.train_scenario, "episodes": self.episodes}
-        return {**out, "planning": self.planning}
+        return {**out, "planning": self.planning, "counterfactual": dict(self.counterfactual)}
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -154,7 +156,13 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     planning = cfg.get("planning", True)
     if not isinstance(planning, bool):
         raise PlanError(f"planning: must be true or false, got {planning!r}")
-    return Plan(planning=planning, budget=cfg["budget"], encoders=names("encoders", tuple(sorted(ENCODERS))),
+    counterfactual = cfg.get("counterfactual") or {}
+    if not isinstance(counterfactual, dict) or set(counterfactual) - set(COUNTERFACTUAL_OFF):
+        raise PlanError(f"counterfactual: give train.counterfactual's keys ({', '.join(COUNTERFACTUAL_OFF)}), e.g. "
+                        f"counterfactual.mode=second_update; got {counterfactual!r}")
+    counterfactual = {**COUNTERFACTUAL_OFF, **counterfactual}
+    return Plan(counterfactual=tuple(counterfactual.items()), planning=planning, budget=cfg["budget"],
+                encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
                 train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
                 episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
@@ -205,6 +213,7 @@ def check_manifest(plan: Plan) -> None:
     if path.exists():
         have = json.loads(path.read_text())
         have.setdefault("planning", False)  # folders made before the key trained without planning
+        have.setdefault("counterfactual", COUNTERFACTUAL_OFF)  # ... and without counterfactual experience
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
             said = ", ".join(f"{k}: folder {a!r} vs now {b!r}" for k, (a, b) in diff.items())
@@ -224,7 +233,9 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
     return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
             f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
             f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
-            f"planning.enabled={str(plan.planning).lower()}"]
+            f"planning.enabled={str(plan.planning).lower()}",
+            *[f"train.counterfactual.{k}={v}" for k, v in plan.counterfactual
+              if dict(plan.counterfactual)["mode"] != "off"]]
 
 
 def is_trained(run_dir: Path) -> bool:
@@ -520,6 +531,9 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
 
 
 # the default out= keeps planning and plain tables apart: results/<budget>-planning, results/<budget>
+if not OmegaConf.has_resolver("crowdrl_counterfactual_suffix"):
+    OmegaConf.register_new_resolver("crowdrl_counterfactual_suffix",
+                                    lambda mode: "" if mode in (None, "off") else "-counterfactual")
 if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 
