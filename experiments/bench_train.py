@@ -5,6 +5,7 @@
     python experiments/bench_train.py --explorations egreedy noisy dropout icm re3   # overhead ratios
     python experiments/bench_train.py --loss eager compiled      # what compiling the update buys
     python experiments/bench_train.py --encoders sgd3qn sarl lstm_rl mp_rgl   # per-update cost of each encoder
+    python experiments/bench_train.py --planning --counterfactual-k 0 5 81   # counterfactual experience's cost
 
 One row per (encoder, exploration, loss); ``--json`` prints ``{"meta": ..., "rows": [...]}`` (the
 shared format of ``benchkit.py``).
@@ -49,7 +50,16 @@ def matmul_mflop_per_update(loss, sample) -> float:
     return counter.get_total_flops() / 1e6
 
 
-def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Namespace) -> tuple[dict, tuple]:
+def counterfactual_of(k: int) -> dict:
+    """``train.counterfactual`` for ``--counterfactual-k``: 0 off, 81 every action, else the top k by Q
+    (each a second update after the real one, SG-D3QN's arrangement)."""
+    if k == 0:
+        return {"mode": "off"}
+    return {"mode": "second_update", **({"actions": "all"} if k == 81 else {"actions": "topk", "k": k})}
+
+
+def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Namespace,
+            counterfactual_k: int = 0) -> tuple[dict, tuple]:
     """Collection rate and per-update breakdown (ms) for one exploration variant, and the
     (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
@@ -62,7 +72,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
                     "threads": args.threads, "env": {"orca_backend": args.orca_backend},
                     "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
                                                       "compile_loss": loss_backend == "compiled",
-                                                      "compile_acting": args.acting == "compiled"},
+                                                      "compile_acting": args.acting == "compiled",
+                              "counterfactual": counterfactual_of(counterfactual_k)},
                     "planning": {"enabled": args.planning}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
     torch.set_num_threads(args.threads)
@@ -82,6 +93,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     collector.shutdown()
 
     # the trainer's own update (Trainer.update_once), timed in two parts: sampling, then the rest
+    # "optimizer": from the first optimiser step to the end of the update (with counterfactual experience the
+    # second batch's building, loss and step are in it too)
     parts: dict[str, list[float]] = {"sample": [], "loss_and_grad": [], "optimizer": []}
     step = tr.optimizer.step
 
@@ -112,7 +125,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     hours = collect_h + BUDGET_UPDATES * update_ms / 1e3 / 3600
     # what one update may cost for collection + updates to fit in one hour at this collection rate
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
-    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "collect_frames_per_s": frames_per_s,
+    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "counterfactual_k": counterfactual_k,
+            "collect_frames_per_s": frames_per_s,
             "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
             "update_ms_for_1h_budget": update_ms_for_1h}, flop_probe
@@ -137,10 +151,14 @@ def main(argv: list[str] | None = None) -> dict:
                    help="the acting Q network (train.compile_acting; compiled in the untimed warm-up)")
     p.add_argument("--planning", action="store_true",
                    help="act with the online planner and train its predictor (planning.enabled=true)")
+    p.add_argument("--counterfactual-k", type=int, nargs="+", default=[0],
+                   help="counterfactual transitions per sampled state: 0 off (default), 1..80 the top k by Q, 81 all")
     add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
         p.error("all counts must be >= 1")
+    if any(not 0 <= k <= 81 for k in args.counterfactual_k):
+        p.error(f"--counterfactual-k: each must lie in 0..81, got {args.counterfactual_k}")
     if args.warmup_frames < 100:
         p.error("--warmup-frames must be >= 100 (one batch of 100 is sampled from the buffer)")
     torch.set_num_threads(args.threads)
@@ -153,7 +171,8 @@ def main(argv: list[str] | None = None) -> dict:
     unknown = sorted(set(args.encoders) - set(ENCODERS))
     if unknown:
         p.error(f"--encoders: unknown {unknown}; allowed: {sorted(ENCODERS)}")
-    measured = [measure(e, x, backend, args) for e in args.encoders for x in args.explorations for backend in args.loss]
+    measured = [measure(e, x, backend, args, k) for e in args.encoders for x in args.explorations for backend in args.loss
+                for k in args.counterfactual_k]
     results = [r for r, _ in measured]
     for r, probe in measured:  # after every timing (see matmul_mflop_per_update)
         r["matmul_mflop_per_update"] = mflop = matmul_mflop_per_update(*probe)
@@ -164,10 +183,11 @@ def main(argv: list[str] | None = None) -> dict:
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
     meta = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders,
-            "batch_size": 100, "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning}
+            "batch_size": 100, "counterfactual_k": args.counterfactual_k,
+            "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning}
     first = results[0]
     part = lambda k: Column(lambda r: r["update_breakdown_ms"][k], f"{k} ms", ".2f")  # noqa: E731
-    columns = [Column("encoder"), Column("exploration"), Column("loss"),
+    columns = [Column("encoder"), Column("exploration"), Column("loss"), Column("counterfactual_k", "counterfactual k"),
                Column("collect_frames_per_s", "collect frames/s", ",.0f"), Column("update_ms", "update ms", ".2f"),
                Column("updates_per_s", "updates/s", ".1f"), part("sample"), part("loss_and_grad"), part("optimizer"),
                Column("update_cost_vs_first", "vs first", ".2f"),
@@ -178,7 +198,8 @@ def main(argv: list[str] | None = None) -> dict:
              f"acting {args.acting}" + (", planning" if args.planning else "")
              + f"; update cost relative to the first row ({first['encoder']}, {first['exploration']}, {first['loss']} loss)")
     notes = ["collect frames/s: env + acting policy through the TorchRL collector; update = sample + loss_and_grad + "
-             "optimizer (ms each); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
+             "optimizer (ms each; optimizer: from the first optimiser step on, with counterfactual k > 0 the whole second "
+             "update on the counterfactual batch); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
              "updates projected at these rates; 1 h needs: the update time that fits both in one hour"]
     return emit(results, columns=columns, title=title, meta=meta, as_json=args.json, notes=notes)
 
