@@ -169,3 +169,41 @@ def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(t
     assert "train.counterfactual.k=3" in run_overrides(plan, plan.methods[0])
     with pytest.raises(PlanError, match="counterfactual"):
         make_plan({**cfg, "counterfactual": {"modes": "merged"}})
+
+
+def _tiny_run(total_frames: int, mode: str = "second_update"):
+    return validate({
+        "preset": "smoke", "encoder": {"name": "sarl"}, "env": {"num_humans": 4},
+        "logger": {"name": "csv", "progress_bar": False, "render": False},
+        "planning": {"enabled": False}, "exploration": {"name": "egreedy"},
+        "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": total_frames, "warmup_frames": 32,
+                  "batch_size": 16, "buffer_size": 1000, "updates_per_frame": 0.25, "target_update_frames": 32,
+                  "val_every_frames": 64, "val_episodes": 2, "checkpoint_every_frames": 32, "test_episodes": 2,
+                  "compile_acting": False, "compile_loss": False, "save_buffer": True,
+                  "counterfactual": {"mode": mode, "actions": "random", "k": 3}}}, resources=False)
+
+
+@pytest.mark.parametrize("mode", ["second_update", "merged"])
+def test_a_stopped_run_resumes_exactly_and_logs_the_counterfactual_scalars(tmp_path, mode):
+    from crowdrl.training import Trainer
+    from crowdrl.training.checkpoint import load_checkpoint
+
+    def train(run, folder):
+        trainer = Trainer(run, folder)
+        try:
+            trainer.train()
+        finally:
+            trainer.close()
+
+    train(_tiny_run(128, mode), tmp_path / "straight")
+    train(_tiny_run(64, mode), tmp_path / "resumed")
+    train(_tiny_run(128, mode), tmp_path / "resumed")  # continues from last.pt at 64 frames
+    straight, resumed = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt") for d in ("straight", "resumed"))
+    assert straight["counters"]["updates"] == resumed["counters"]["updates"] > 0
+    assert all(torch.equal(straight["loss"][k], resumed["loss"][k]) for k in straight["loss"])
+    assert torch.equal(straight["update_part"]["generator"], resumed["update_part"]["generator"])
+    import json
+    rows = [json.loads(line) for line in (tmp_path / "straight" / "scalars.jsonl").read_text().splitlines()]
+    train_rows = [r for r in rows if r["kind"] == "train" and "train/counterfactual_collision_rate" in r]
+    assert train_rows and all(0 <= r["train/counterfactual_collision_rate"] <= 1 for r in train_rows)
+    assert all(("train/loss_counterfactual" in r) == (mode == "second_update") for r in train_rows)
