@@ -49,33 +49,31 @@ def _desired_directions(position: Tensor, velocity: Tensor, goal: Tensor, has_go
     return to / torch.where(norm == 0, torch.ones_like(norm), norm)
 
 
-def _repulsion(px: Tensor, py: Tensor, vx: Tensor, vy: Tensor, ex: Tensor, ey: Tensor, pair: Tensor,
-               v0: float, sigma: float) -> tuple[Tensor, Tensor]:
-    """``sum_b w_ab f_ab`` per pedestrian, ``[B, M]`` each; ``pair [B, M, M]`` marks the pairs that interact."""
-    speed = torch.sqrt(vx * vx + vy * vy)
-    rx = px.unsqueeze(2) - px.unsqueeze(1)  # r_ab = r_a - r_b  [B, a, b]
-    ry = py.unsqueeze(2) - py.unsqueeze(1)
+def _repulsion(position: Tensor, speed: Tensor, e: Tensor, pair: Tensor, v0: float, sigma: float) -> Tensor:
+    """``sum_b w_ab f_ab`` per pedestrian ``[B, M, 2]``; ``pair [B, M, M]`` marks the pairs that interact.
+
+    Written in the package's order of float operations (its autograd backward included), so that float32
+    answers agree to the last bit (``experiments/human_model_agreement.py``)."""
+    r = position.unsqueeze(2) - position.unsqueeze(1)  # r_ab = r_a - r_b  [B, a, b, 2]
     s = (POTENTIAL_STEP * speed).unsqueeze(1)  # s_b  [B, 1, b]
-    qx = rx - s * ex.unsqueeze(1)  # r_ab - s_b e_b
-    qy = ry - s * ey.unsqueeze(1)
-    n1 = torch.sqrt(rx * rx + ry * ry)
-    n2 = torch.sqrt(qx * qx + qy * qy)
+    q = r - s.unsqueeze(-1) * e.unsqueeze(1)  # r_ab - s_b e_b
+    n1 = torch.linalg.vector_norm(r, dim=-1)
+    n2 = torch.linalg.vector_norm(q, dim=-1)
     total = n1 + n2
-    inner = total * total - s * s
+    inner = total ** 2 - s ** 2
     root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))  # 2b
     value = v0 * torch.exp(-(0.5 * root) / sigma)
-    # -dV/dr_ab = V / sigma * db/dr_ab, db/dr_ab = (n1 + n2) (r/n1 + q/n2) / (2 * 2b)
-    scale = value / sigma * (0.5 * (2.0 * total) / (2.0 * root))
-    scale = torch.where(pair & (inner >= SQRT_FLOOR), scale, torch.zeros_like(scale))
-    inv1 = torch.where(n1 > 0, 1.0 / n1, torch.zeros_like(n1))
-    inv2 = torch.where(n2 > 0, 1.0 / n2, torch.zeros_like(n2))
-    fx = scale * (rx * inv1 + qx * inv2)
-    fy = scale * (ry * inv1 + qy * inv2)
+    # f_ab = -dV/dr_ab, the chain rule in autograd's order: V -> b -> root -> inner -> n1 + n2 -> r_ab
+    g = -(value / sigma) * 0.5 / (2 * root) * (2 * total)
+    live = pair & (inner >= SQRT_FLOOR)
+    g = g.unsqueeze(-1)
+    grad = r / n1.unsqueeze(-1) * g + q / n2.unsqueeze(-1) * g
+    force = torch.where(live.unsqueeze(-1), -grad, 0.0)
     # field of view: b (at -r_ab from a) in sight of a when e_a . (-r_ab) > |r_ab| cos(phi)
     cos_phi = math.cos(FIELD_OF_VIEW_DEG / 2.0 / 180.0 * math.pi)
-    ahead = -(ex.unsqueeze(2) * rx + ey.unsqueeze(2) * ry)
+    ahead = torch.einsum("zaj,zabj->zab", e, -r)
     w = torch.where(ahead > n1 * cos_phi, 1.0, OUT_OF_VIEW_FACTOR)
-    return (w * fx).sum(-1), (w * fy).sum(-1)
+    return torch.sum(w.unsqueeze(-1) * force, dim=2)
 
 
 def social_force_velocities(
@@ -111,17 +109,16 @@ def social_force_velocities(
     max_speed = preferred_speed * MAX_SPEED_MULTIPLIER
     pos, vel = position, velocity
     acc = torch.zeros_like(velocity)
+    inv_tau = 1.0 / torch.tensor(tau, dtype=position.dtype, device=position.device)
     for _ in range(int(substeps)):
         e = _desired_directions(pos, vel, goal, has_goal)
-        drive = (preferred_speed.unsqueeze(-1) * e - vel) * (1.0 / tau)
-        fx, fy = _repulsion(pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], e[..., 0], e[..., 1], pair,
-                            v0, sigma)
-        force = drive + torch.stack((fx, fy), -1)
+        drive = inv_tau * (preferred_speed.unsqueeze(-1) * e - vel)
+        speed = torch.linalg.vector_norm(vel, dim=-1)
+        force = drive + _repulsion(pos, speed, e, pair, v0, sigma)
         pos = pos + vel * dt + 0.5 * force * dt ** 2
         vel = vel + 0.5 * (acc + force) * dt
         acc = force
-        speed = torch.linalg.vector_norm(vel, dim=-1, keepdim=True)
-        vel = vel * (max_speed.unsqueeze(-1) / speed).clamp(max=1.0)
+        vel = vel * (max_speed.unsqueeze(-1) / torch.linalg.vector_norm(vel, dim=-1, keepdim=True)).clamp(max=1.0)
     if mask is not None:
         vel = torch.where(mask.unsqueeze(-1), vel, velocity)
     return vel
