@@ -184,3 +184,38 @@ def test_the_gymnasium_ids_take_the_keys():
     assert np.isfinite(obs["humans"]).all()
     with pytest.raises(ValueError, match="^human_model"):
         gym.make("crowdrl/CircleCrossing-v0", human_model="rvo")
+
+
+def _cli(script: str, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "WANDB_MODE": "disabled"}
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / script), *args], env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_evaluate_py_takes_the_humans_model_in_one_override_and_refuses_a_bad_one(tmp_path):
+    proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+                "eval.human_model=social_force", "eval.robot_visible=true", f"hydra.run.dir={tmp_path / 'ok'}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    record = json.loads((tmp_path / "ok" / "eval.json").read_text())
+    assert (record["human_model"], record["robot_visible"]) == ("social_force", True)
+    for args, named in ((["env=room", "eval.human_model=social_force"], "eval.human_model"),
+                        (["eval.robot_visible=3"], "eval.robot_visible")):
+        proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'bad'}")
+        assert proc.returncode == 2 and named in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+        assert not (tmp_path / "bad").exists()
+
+
+def test_a_pretrained_agent_is_evaluated_among_other_humans():
+    from crowdrl.training.pipeline import evaluate_spec
+
+    agent = ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0"
+    plain, _ = evaluate_spec(checkpoint=agent, episodes=3, batch=3)
+    linear, _ = evaluate_spec(checkpoint=agent, episodes=3, batch=3, human_model="linear", robot_visible=True)
+    assert "human_model" not in plain and (linear["human_model"], linear["robot_visible"]) == ("linear", True)
+    assert linear["min_separation"] != plain["min_separation"]
+
+
+def test_train_py_refuses_a_bad_humans_key_naming_it_and_writes_nothing(tmp_path):
+    proc = _cli("train.py", "preset=smoke", "env.human_model=helbing", f"hydra.run.dir={tmp_path / 'r'}")
+    assert proc.returncode != 0 and "env.human_model" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "r").exists()
