@@ -93,8 +93,8 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
         return sum(v[3] for k, v in stats.items() if k[0].endswith(file_end) and k[2] == name)
 
     parts = {
-        "env step: ORCA": cum("sim/crowd.py", "human_velocities"),
-        "env step: rest of the physics": cum("sim/crowd.py", "step") - cum("sim/crowd.py", "human_velocities"),
+        "env step: ORCA": cum("sim/humans.py", "human_velocities"),
+        "env step: rest of the physics": cum("sim/crowd.py", "step") - cum("sim/humans.py", "human_velocities"),
         "env resets (CrowdNavEnv._reset)": cum("envs/crowd_nav.py", "_reset"),
         "robot-centric transform": cum("envs/robot_centric.py", "_call"),
         # compiled acting: CompiledModule.forward holds the compiled frame of CrowdQNetwork.forward

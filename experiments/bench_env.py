@@ -26,7 +26,10 @@ seeded robot actions:
 B sweep, at B = 1024, N = 10 unless ``--batch-sizes``/``--num-humans`` say otherwise (alternating the
 two scenarios for each measurement, so both see the same machine), and adds the ratios of the
 obstacle scenario's rates to circle's (``core/circ``, ``env/circ``) to its row; ``edges`` is the
-scenario's obstacle edges (doorway: 2 wall segments, one each side of the gap).
+scenario's obstacle edges (doorway: 2 wall segments, one each side of the gap). ``--compare-humans``
+likewise measures the humans' models (``orca``, ``orca`` seeing the robot, ``social_force`` with and
+without, ``linear``) in ``--scenario`` and adds each row's ratios to invisible ORCA's (``core/orca``,
+``env/orca``); no reference column there (it simulates blind ORCA humans only).
 
 Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
 (printed once) is measured in a fresh subprocess at ``--memory-batch-size`` (default B=65,536),
@@ -43,6 +46,7 @@ Usage::
     python experiments/bench_env.py --threads 1,2 --json > bench.json
     python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.fast, when importable
     python experiments/bench_env.py --compare-obstacles --no-memory  # circle vs doorway, B = 1024, N = 10
+    python experiments/bench_env.py --compare-humans --no-memory     # orca, social_force, linear, B = 1024
 
 The compiled backend builds one graph per (B, N) on first use (minutes with a cold inductor
 cache); the warm-up steps absorb it, but restrict ``--batch-sizes``/``--num-humans`` with it.
@@ -371,6 +375,38 @@ def compare_obstacles(args, step_fn) -> tuple[list[dict], dict]:
     return rows, ref_cache
 
 
+HUMAN_CELLS = (("orca", False), ("orca", True), ("social_force", False), ("social_force", True), ("linear", False))
+
+
+def compare_humans(args, step_fn) -> tuple[list[dict], dict]:
+    """The humans' models (:data:`HUMAN_CELLS`: model, robot visible) in ``args.scenario`` at every
+    (threads, N, B), each measurement taken for every cell back to back; each row gets its rates' ratios
+    to invisible ORCA's (``core/orca``, ``env/orca``). No reference column (it simulates ORCA only)."""
+    rows = []
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.num_humans:
+            cfgs = {c: CrowdConfig(scenario=args.scenario, num_humans=n, orca_backend=orca_backend(args.backend),
+                                   human_model=c[0], robot_visible=c[1]) for c in HUMAN_CELLS}
+            for b in args.batch_sizes:
+                cells = {c: dict(humans=c[0] + (" (robot visible)" if c[1] else ""), threads=threads, N=n, B=b)
+                         for c in HUMAN_CELLS}
+                for c in HUMAN_CELLS:
+                    cells[c].update(bench_core(cfgs[c], b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
+                if not args.no_env:
+                    for c in HUMAN_CELLS:
+                        cells[c].update(bench_env(cfgs[c], b, args.steps, args.warmup, args.seed, args.max_seconds))
+                orca = cells[HUMAN_CELLS[0]]
+                for row in cells.values():
+                    row["core_vs_orca"] = row["core_sps"] / orca["core_sps"]
+                    if not args.no_env:
+                        row["env_vs_orca"] = row["env_sps"] / orca["env_sps"]
+                    log(f"threads={threads} N={n} B={b} {row['humans']}: core {row['core_sps']:.0f} steps/s "
+                        f"({row['core_vs_orca']:.2f} x orca)")
+                rows += list(cells.values())
+    return rows, {}
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help=f"B in {QUICK_B}, N in {QUICK_N}, fewer steps (< 1 min)")
@@ -387,6 +423,10 @@ def parse_args(argv=None):
     p.add_argument("--compare-obstacles", nargs="?", const="doorway", default=None, choices=OBSTACLE_SCENARIOS,
                    metavar="SCENARIO", help="measure circle and SCENARIO (default doorway) in the same run, at "
                    "B = 1024, N = 10 unless --batch-sizes/--num-humans are given, with the rate ratios")
+    p.add_argument("--compare-humans", action="store_true",
+                   help="measure the humans' models (orca, orca seeing the robot, social_force, social_force seeing "
+                   "the robot, linear) in --scenario in the same run, at B = 1024, N = 10 unless "
+                   "--batch-sizes/--num-humans are given, with the rate ratios to invisible orca")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-env", action="store_true", help="skip the CrowdNavEnv column")
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
@@ -402,7 +442,9 @@ def parse_args(argv=None):
     args.max_seconds = args.max_seconds or (4.0 if args.quick else 15.0)
     args.ref_steps = args.ref_steps or (150 if args.quick else 400)
     default_b, default_n = (QUICK_B, QUICK_N) if args.quick else (FULL_B, FULL_N)
-    if args.compare_obstacles:
+    if args.compare_obstacles and args.compare_humans:
+        p.error("--compare-obstacles and --compare-humans are separate runs")
+    if args.compare_obstacles or args.compare_humans:
         default_b, default_n = COMPARE_B, COMPARE_N
     args.batch_sizes = [int(b) for b in args.batch_sizes.split(",")] if args.batch_sizes else list(default_b)
     args.num_humans = [int(n) for n in args.num_humans.split(",")] if args.num_humans else list(default_n)
@@ -419,6 +461,11 @@ COMPARE_COLUMNS = [Column("scenario"), Column("edges"), *COLUMNS,
                    Column("ref_waypoint_share", "ref wp%", lambda v: f"{100 * v:.0f}"),
                    Column("speedup_vs_ref_no_wp", "xref-wp", ".1f"),
                    Column("core_vs_circle", "core/circ", ".2f"), Column("env_vs_circle", "env/circ", ".2f")]
+
+
+# --compare-humans: the humans' model first, the ratios to invisible ORCA last
+HUMANS_COLUMNS = [Column("humans"), *(c for c in COLUMNS if c.key not in ("ref_sps", "speedup_vs_ref")),
+                  Column("core_vs_orca", "core/orca", ".2f"), Column("env_vs_orca", "env/orca", ".2f")]
 
 
 def memory_note(memory: dict) -> str:
@@ -446,6 +493,8 @@ def main(argv=None) -> int:
 
     if args.compare_obstacles:
         rows, ref_cache = compare_obstacles(args, step_fn)
+    elif args.compare_humans:
+        rows, ref_cache = compare_humans(args, step_fn)
     else:
         rows, ref_cache = sweep(args, step_fn)
     memory = None if args.no_memory else run_memory_probe(args)
@@ -456,7 +505,11 @@ def main(argv=None) -> int:
     if args.compare_obstacles:
         meta.update(scenario=f"circle,{args.compare_obstacles}", compare_obstacles=args.compare_obstacles)
         scenarios = f"scenarios circle and {args.compare_obstacles}"
-    emit(rows, columns=COMPARE_COLUMNS if args.compare_obstacles else COLUMNS, meta=meta, as_json=args.json,
+    if args.compare_humans:
+        meta.update(compare_humans=True)
+        scenarios += ", the humans' models"
+    columns = COMPARE_COLUMNS if args.compare_obstacles else HUMANS_COLUMNS if args.compare_humans else COLUMNS
+    emit(rows, columns=columns, meta=meta, as_json=args.json,
          extra=dict(memory=memory, reference=ref_cache),
          notes=[memory_note(memory)] if memory else [],
          title=f"Simulator throughput: {meta['backend']} backend, {scenarios}, torch {meta['torch']}, "

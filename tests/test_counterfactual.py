@@ -144,6 +144,16 @@ def test_config_keys_are_checked_naming_the_key():
             validate({"train": {"counterfactual": {"mode": "merged", key: value}}}, resources=False)
 
 
+def test_humans_that_react_to_the_robot_are_refused_naming_the_key():
+    with pytest.raises(ConfigError, match="train.counterfactual.mode.*env.robot_visible"):
+        validate({"env": {"robot_visible": True}, "train": {"counterfactual": {"mode": "second_update"}}},
+                 resources=False)
+    validate({"env": {"robot_visible": True, "human_model": "linear"},  # linear humans ignore everyone
+              "train": {"counterfactual": {"mode": "second_update"}}}, resources=False)
+    with pytest.raises(ValueError, match="visible robot"):
+        CounterfactualExperience(CrowdConfig(robot_visible=True), make_q_network("sarl"), ["robot_rc", "humans_rc"])
+
+
 def test_off_keeps_the_fingerprint_of_runs_recorded_before_the_key():
     off = to_dict(validate({}, resources=False))
     older = {**off, "train": {k: v for k, v in off["train"].items() if k != "counterfactual"}}

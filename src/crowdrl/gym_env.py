@@ -36,6 +36,8 @@ class CrowdNavGymEnv(gym.Env):
     (scaled down to ``v_pref`` if faster), both through :func:`crowdrl.sim.kinematics.decode_action`.
     Info (numbers only): ``event`` (0 running, 1 success, 2 collision, 3 timeout),
     ``min_separation``, ``discomfort_count``, ``episode_id``.
+    The humans' model and whether they see the robot: ``gym.make(id, human_model="social_force",
+    robot_visible=True)`` (``CrowdConfig``'s keys; ORCA humans blind to the robot by default).
 
     ``reset(seed=s)`` selects scenario stream ``s`` of ``split`` and restarts its episode counter;
     the first reset without a seed draws the stream from ``self.np_random`` (OS entropy), so the
@@ -55,13 +57,16 @@ class CrowdNavGymEnv(gym.Env):
         render_mode: str | None = None,
         lidar_rays: int = CrowdConfig.lidar_rays,
         lidar_range: float = CrowdConfig.lidar_range,
+        human_model: str = CrowdConfig.human_model,
+        robot_visible: bool = CrowdConfig.robot_visible,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.config = CrowdConfig(scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics,
-                                  lidar_rays=lidar_rays, lidar_range=lidar_range)
+                                  lidar_rays=lidar_rays, lidar_range=lidar_range, human_model=human_model,
+                                  robot_visible=robot_visible)
         self.split = split
         self.render_mode = render_mode
         N, v = self.config.num_humans, self.config.robot_v_pref

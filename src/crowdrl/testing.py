@@ -235,6 +235,65 @@ def padded_obstacles(scenes: list[dict], dtype: torch.dtype = torch.float32) -> 
     return out, mask
 
 
+CROWD_KINDS = ("crowd", "dense", "overlap")  # random_scene kinds of equal radii: crowds of CrowdConfig's humans
+
+
+def random_crowd_scene(rng: np.random.Generator, kind: str) -> dict[str, np.ndarray]:
+    """A :func:`random_scene` of ``kind`` (one of :data:`CROWD_KINDS`) as humans with goals (``goals`` =
+    position + preferred velocity) and a robot: ``robot_position``/``robot_velocity`` ``[2]``, placed in
+    the 10 m square (``crowd``) or at a surface gap of -0.1..0.05 m from a random human (``dense``,
+    ``overlap``), at a random speed below 1 m/s; float32-exact."""
+    if kind not in CROWD_KINDS:
+        raise ValueError(f"unknown crowd scene kind {kind!r}; expected one of {CROWD_KINDS}")
+    scene = random_scene(rng, kind)
+    scene["goals"] = (scene["positions"] + scene["pref_velocities"]).astype(np.float32)
+    if kind == "crowd":
+        robot = rng.uniform(-5, 5, 2)
+    else:
+        ang = rng.uniform(0, 2 * np.pi)
+        robot = scene["positions"][int(rng.integers(len(scene["positions"])))] + (0.61 + rng.uniform(-0.1, 0.05)) * \
+            np.array([np.cos(ang), np.sin(ang)])
+    speed, heading = rng.uniform(0, 1), rng.uniform(0, 2 * np.pi)
+    scene["robot_position"] = robot.astype(np.float32)
+    scene["robot_velocity"] = np.array([speed * np.cos(heading), speed * np.sin(heading)], dtype=np.float32)
+    return scene
+
+
+def crowd_scene_state(scenes: list[dict[str, np.ndarray]]):
+    """A :class:`~crowdrl.sim.state.CrowdState` of :func:`random_crowd_scene` scenes with equally many humans
+    (robot heading 0, goal (0, 4), counters 0)."""
+    from crowdrl.sim.state import CrowdState
+
+    stack = lambda key: torch.as_tensor(np.stack([s[key] for s in scenes]))  # noqa: E731
+    B, N = len(scenes), len(scenes[0]["positions"])
+    return CrowdState(
+        robot_position=stack("robot_position"), robot_velocity=stack("robot_velocity"), robot_heading=torch.zeros(B),
+        robot_goal=torch.tensor([[0.0, 4.0]]).repeat(B, 1), human_position=stack("positions"),
+        human_velocity=stack("velocities"), human_goal=stack("goals"),
+        human_goal_steps=torch.zeros(B, N, dtype=torch.long), step_count=torch.zeros(B, dtype=torch.long),
+        episode_key=torch.zeros(B, dtype=torch.long), human_mask=torch.ones(B, N, dtype=torch.bool))
+
+
+def socialforce_velocities(positions: np.ndarray, velocities: np.ndarray, goals: np.ndarray,
+                           preferred_speeds: np.ndarray, has_goal: np.ndarray, *, time_step: float, substeps: int,
+                           tau: float, v0: float, sigma: float) -> np.ndarray:
+    """One call of the ``socialforce`` package (0.2.3; a test-only install) on ``M`` pedestrians: their
+    velocities ``[M, 2]`` (float64) after ``Simulator(delta_t=time_step, oversampling=substeps)`` from rest
+    in acceleration, float32 as the package computes by default. A pedestrian without ``has_goal`` gets the
+    package's NaN destination (it heads where it goes)."""
+    import socialforce
+
+    M = len(positions)
+    destination = np.where(np.asarray(has_goal)[:, None], goals, np.nan)
+    state = np.concatenate((positions, velocities, np.zeros((M, 2)), destination, np.full((M, 1), tau),
+                            np.asarray(preferred_speeds).reshape(M, 1)), 1)
+    sim = socialforce.Simulator(ped_ped=socialforce.potentials.PedPedPotential(v0=v0, sigma=sigma),
+                                delta_t=time_step, tau=tau, oversampling=substeps)
+    with torch.no_grad():
+        out = sim(torch.tensor(state, dtype=torch.float32))
+    return out[:, 2:4].double().numpy()
+
+
 def robot_centric_states(*batch: int, n: int = 10, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     """Plausible robot-centric states ``(robot_rc [*batch, 9], humans_rc [*batch, n, 5])`` for
     encoder tests: positions of a few metres, speeds ~1 m/s, drawn from torch's global RNG."""

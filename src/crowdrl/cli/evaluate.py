@@ -3,6 +3,7 @@
 
     python experiments/evaluate.py checkpoint=runs/<folder>                  # its scenario, 1000 cases
     python experiments/evaluate.py checkpoint=runs/<folder> env=square       # zero-shot on square
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=social_force eval.robot_visible=true
     python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
 
@@ -54,7 +55,8 @@ def check_keys(c: dict, overrides: list[str]) -> None:
     if bad:
         raise ConfigError(f"{', '.join(bad)}: not read by evaluate.py (unknown key); allowed: checkpoint, policy, "
                           f"{', '.join(f'eval.{k}' for k in known['eval'])}, threads, device, env=<scenario> "
-                          f"(the crowd size is eval.num_humans)")
+                          f"(the crowd size is eval.num_humans, the humans' model eval.human_model, whether "
+                          f"they see the robot eval.robot_visible)")
 
 
 @hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
@@ -77,7 +79,8 @@ def main(cfg: DictConfig) -> dict:
         e = c["eval"]
         record, traj = evaluate_spec(checkpoint=c["checkpoint"], policy=c["policy"], scenario=scenario, seed=e["seed"],
                                      episodes=e["episodes"], num_humans=e["num_humans"], batch=e["batch"],
-                                     record_episode=e["record_episode"], device=c["device"])
+                                     record_episode=e["record_episode"], device=c["device"],
+                                     human_model=e["human_model"], robot_visible=e["robot_visible"])
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 

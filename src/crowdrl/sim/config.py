@@ -16,6 +16,10 @@ OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_wi
                  "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
 LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
+HUMAN_MODELS = ("orca", "social_force", "linear")  # how the humans move (crowdrl.sim.humans)
+# CrowdConfig's keys of the humans' model (the Hydra env group's keys of the same names)
+HUMAN_KEYS = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
+SOCIAL_FORCE_KEYS = ("sf_tau", "sf_v0", "sf_sigma", "sf_substeps")  # read by human_model="social_force" only
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
 
@@ -84,6 +88,17 @@ class CrowdConfig:
     # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
     # clipped to robot_v_pref; the ORCA robot baseline acts this way).
     robot_kinematics: str = "unicycle"
+    # How the humans move (crowdrl.sim.humans): "orca" (RVO2's, the paper's), "social_force" (Helbing-Molnar
+    # as the socialforce 0.2.3 package computes it; open scenarios only) or "linear" (straight to the goal).
+    human_model: str = "orca"
+    # Whether the humans see the robot (one more ORCA neighbour / social-force pedestrian); invisible in the paper.
+    robot_visible: bool = False
+    # Social force (socialforce 0.2.3's defaults): relaxation time tau (s), the repulsive potential's
+    # V0 (m^2/s^2) and sigma (m), and the leapfrog sub-steps per time step (the package's oversampling).
+    sf_tau: float = 0.5
+    sf_v0: float = 2.1
+    sf_sigma: float = 0.3
+    sf_substeps: int = 10
 
     def __post_init__(self) -> None:
         if self.orca_backend not in ORCA_BACKENDS:
@@ -109,6 +124,7 @@ class CrowdConfig:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self._check_obstacle_keys()
+        self._check_human_keys()
         if not is_integer(self.lidar_rays) or self.lidar_rays < 0:
             raise ValueError(f"lidar_rays must be an integer >= 0 (0: no scan), got {self.lidar_rays!r}")
         if isinstance(self.lidar_range, bool) or not (isinstance(self.lidar_range, (int, float))
@@ -124,6 +140,31 @@ class CrowdConfig:
             raise ValueError(f"orca_max_neighbors must be an integer >= 0, got {self.orca_max_neighbors!r}")
         if not is_integer(self.goal_steps_before_new_goal) or self.goal_steps_before_new_goal < 1:
             raise ValueError(f"goal_steps_before_new_goal must be an integer >= 1, got {self.goal_steps_before_new_goal!r}")
+
+    def _check_human_keys(self) -> None:
+        """The humans' model keys (the social-force parameters checked whatever the model, so that a bad
+        value is named even before it is used)."""
+        if self.human_model not in HUMAN_MODELS:
+            raise ValueError(f"human_model must be one of {HUMAN_MODELS}, got {self.human_model!r}")
+        if not isinstance(self.robot_visible, bool):
+            raise ValueError(f"robot_visible must be true or false, got {self.robot_visible!r}")
+        for name in ("sf_tau", "sf_v0", "sf_sigma"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if not is_integer(self.sf_substeps) or self.sf_substeps < 1:
+            raise ValueError(f"sf_substeps must be an integer >= 1, got {self.sf_substeps!r}")
+        if self.human_model == "social_force" and self.scenario in OBSTACLE_SCENARIOS:
+            raise ValueError(f"human_model='social_force' runs in the open scenarios {OPEN_SCENARIOS} only, got "
+                             f"scenario={self.scenario!r} (its reference, socialforce 0.2.3, samples walls as "
+                             "points; use human_model='orca' or 'linear' among obstacles)")
+
+    @property
+    def humans_react_to_robot(self) -> bool:
+        """Whether the robot's motion changes the humans' (``robot_visible`` with a model that looks at
+        others: ORCA or social force; linear humans ignore everyone). A feature that replays a step with
+        another robot action and the same humans must refuse such a config."""
+        return self.robot_visible and self.human_model != "linear"
 
     def _check_obstacle_keys(self) -> None:
         """The obstacle geometry's keys: finite, positive, and roomy enough for the agents (checked

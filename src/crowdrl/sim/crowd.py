@@ -12,8 +12,11 @@ from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import wrap_angle
+# the humans' motion models and preferred velocities (crowd's public names since before crowdrl.sim.humans)
+from crowdrl.sim.humans import (doorway_waypoints, human_preferred_velocities,  # noqa: F401
+                                human_preferred_velocity, human_velocities, preferred_velocities)
 from crowdrl.sim.obstacles import ObstacleEdges, path_obstacle_distance
-from crowdrl.sim.orca import orca_solve, require_finite
+from crowdrl.sim.orca import require_finite
 from crowdrl.sim.scenarios import new_human_goals
 from crowdrl.sim.state import CrowdState
 
@@ -37,91 +40,6 @@ class StepResult(NamedTuple):
     human_lp_infeasible: Tensor  # [B, N] bool: a human's ORCA program fell back to 3-D
     # bool: the robot touched an obstacle during the step (a collision; None: no obstacles)
     obstacle_collision: Tensor | None = None
-
-
-def human_preferred_velocity(position: Tensor, goal: Tensor) -> Tensor:
-    """Vector to the goal, scaled to unit length when longer (CrowdNav's ORCA rule)."""
-    to_goal = goal - position
-    dist = torch.linalg.vector_norm(to_goal, dim=-1, keepdim=True)
-    return torch.where(dist > 1, to_goal / dist.clamp_min(1e-12), to_goal)
-
-
-def doorway_waypoints(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tensor:
-    """``doorway``: where a human heads for, ``[..., 2]``: its goal once on the goal's side of the wall,
-    before that the point of the gap (``y = 0``, ``|x| <= doorway_gap / 2 - human_radius - margin``)
-    nearest to where its straight line to the goal crosses the wall's line. A pure function of the
-    position and goal (no state): on a straight line through the gap it is a point of that line, so
-    the human walks straight as without it; a human pushed off its line walks back into the gap
-    instead of pressing against the wall (ORCA avoids obstacles but does not plan around them)."""
-    py, gy = position[..., 1], goal[..., 1]
-    crossing = py * gy < 0
-    t = py / torch.where(crossing, py - gy, torch.ones_like(py))
-    x = position[..., 0] + t * (goal[..., 0] - position[..., 0])
-    inner = cfg.doorway_gap / 2 - cfg.human_radius - cfg.obstacle_clearance_margin
-    waypoint = torch.stack((x.clamp(-inner, inner), torch.zeros_like(x)), -1)
-    return torch.where(crossing.unsqueeze(-1), waypoint, goal)
-
-
-def human_preferred_velocities(cfg: CrowdConfig, state: CrowdState) -> Tensor:
-    """The humans' preferred velocities in ``state``: :func:`preferred_velocities` of their positions
-    and goals."""
-    return preferred_velocities(cfg, state.human_position, state.human_goal)
-
-
-def preferred_velocities(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Tensor:
-    """Preferred velocities ``[..., 2]`` of humans at ``position`` heading for ``goal`` (``[..., 2]``):
-    :func:`human_preferred_velocity` towards the goal; in ``doorway`` the same speed, towards
-    :func:`doorway_waypoints` (the gap) while the wall is between a human and its goal. A pure
-    function (the reference simulator calls it too, :mod:`crowdrl.sim.reference`)."""
-    pref = human_preferred_velocity(position, goal)
-    if cfg.scenario != "doorway":
-        return pref
-    to = doorway_waypoints(cfg, position, goal) - position
-    dist = torch.linalg.vector_norm(to, dim=-1, keepdim=True)
-    speed = torch.linalg.vector_norm(pref, dim=-1, keepdim=True)
-    return torch.where(dist > 1e-6, to / dist.clamp_min(1e-12) * speed, pref)
-
-
-def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdges | None = None
-                     ) -> tuple[Tensor, Tensor]:
-    """ORCA velocities of the humans among themselves (the robot is invisible to them); absent
-    humans (``state.human_mask``) are nobody's neighbours and keep their velocity.
-
-    With obstacles in the state (``state.obstacles``, ``P > 0``) the humans' ORCA sees them too,
-    with ``cfg.orca_time_horizon_obst``; ``obstacle_edges`` are their processed edges if already at
-    hand (:func:`crowdrl.sim.obstacles.process_obstacles`), else the polygons are processed here."""
-    if cfg.orca_backend == "compiled":
-        from crowdrl.sim.fast import compiled_orca_solve as solve
-    else:
-        solve = orca_solve
-    B, N = state.batch_size, state.num_humans
-    mask = state.human_mask if cfg.variable_crowd else None
-    radius = torch.full((B, N), cfg.human_radius + cfg.orca_radius_margin, dtype=state.human_position.dtype,
-                        device=state.device)
-    sol = solve(
-        state.human_position,
-        state.human_velocity,
-        human_preferred_velocities(cfg, state),
-        radius,
-        torch.full_like(radius, cfg.human_v_pref),
-        time_step=cfg.time_step,
-        neighbor_dist=cfg.orca_neighbor_dist,
-        max_neighbors=cfg.orca_max_neighbors,
-        time_horizon=cfg.orca_time_horizon,
-        mask=mask,
-        **_orca_obstacles(cfg, state, obstacle_edges),
-    )
-    return sol.velocities, sol.lp_infeasible
-
-
-def _orca_obstacles(cfg: CrowdConfig, state: CrowdState, edges: ObstacleEdges | None) -> dict:
-    """The obstacle arguments of the ORCA solver: none for open scenarios (bit-identical to before)."""
-    if not state.has_obstacles:
-        return {}
-    if edges is not None:
-        return {"obstacles": edges, "time_horizon_obst": cfg.orca_time_horizon_obst}
-    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask,
-            "time_horizon_obst": cfg.orca_time_horizon_obst}
 
 
 def closest_surface_distance(rel_position: Tensor, rel_velocity: Tensor, dt: float, radii: float) -> Tensor:

@@ -176,6 +176,9 @@ class ReferenceCrowdSim:
     ) -> None:
         """``obstacles``: the episode's static obstacle polygons, each ``[n, 2]`` (RVO2's convention:
         2 vertices a wall segment, 3 or more a counter-clockwise solid polygon); none by default."""
+        if cfg.human_model != "orca" or cfg.robot_visible:
+            raise ValueError("ReferenceCrowdSim simulates ORCA humans that do not see the robot only; got "
+                             f"human_model={cfg.human_model!r}, robot_visible={cfg.robot_visible}")
         pyrvo = _import_pyrvo()
         self.cfg = cfg
         self.obstacles = tuple(tuple((float(x), float(y)) for x, y in np.asarray(poly, dtype=np.float64).reshape(-1, 2))
@@ -281,7 +284,7 @@ class ReferenceCrowdSim:
         simulator's pure function on this episode's arrays."""
         import torch  # noqa: PLC0415 - only the doorway needs it
 
-        from crowdrl.sim.crowd import preferred_velocities  # noqa: PLC0415
+        from crowdrl.sim.humans import preferred_velocities  # noqa: PLC0415
 
         return preferred_velocities(self.cfg, torch.from_numpy(self.human_position),
                                     torch.from_numpy(self.human_goal)).numpy()

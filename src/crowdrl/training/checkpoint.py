@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from crowdrl.files import atomic_write_bytes
-from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, OPEN_SCENARIOS
+from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, OPEN_SCENARIOS, SOCIAL_FORCE_KEYS, CrowdConfig
 
 FORMAT_VERSION = 1
 
@@ -29,7 +29,9 @@ class CheckpointError(RuntimeError):
 
 # Keys added after runs were recorded, at the value that leaves the problem as it was: left out of
 # the fingerprint at that value, so older run folders keep theirs.
-_NEUTRAL = {"env": {"min_humans": None, "max_humans": None}}
+_NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": CrowdConfig.human_model,
+                    "robot_visible": CrowdConfig.robot_visible,
+                    **{k: getattr(CrowdConfig, k) for k in SOCIAL_FORCE_KEYS}}}
 
 
 def config_fingerprint(config: dict) -> str:
@@ -39,9 +41,11 @@ def config_fingerprint(config: dict) -> str:
         if group in keep:
             keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
     if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space;
-        # the lidar keys nothing without a scan (runs recorded before them had none)
+        # the lidar keys nothing without a scan (runs recorded before them had none); the social-force
+        # parameters nothing unless the humans follow that model
         drop = {"orca_backend", *(OBSTACLE_KEYS if keep["env"].get("scenario") in OPEN_SCENARIOS else ()),
-                *(LIDAR_KEYS if not keep["env"].get("lidar_rays") else ())}
+                *(LIDAR_KEYS if not keep["env"].get("lidar_rays") else ()),
+                *(SOCIAL_FORCE_KEYS if keep["env"].get("human_model", "orca") != "social_force" else ())}
         keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
     if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":

@@ -32,8 +32,8 @@ from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.sim.kinematics import NUM_ACTIONS
-from crowdrl.sim.config import (LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, ORCA_BACKENDS, SCENARIOS,
-                                CrowdConfig)
+from crowdrl.sim.config import (HUMAN_KEYS, LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, ORCA_BACKENDS,
+                                SCENARIOS, CrowdConfig)
 from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
@@ -72,6 +72,14 @@ class EnvConfig:
     # no network of crowdrl reads it
     lidar_rays: int = CrowdConfig.lidar_rays
     lidar_range: float = CrowdConfig.lidar_range  # m, readings clipped to it
+    # how the humans move (orca, social_force, linear) and whether they see the robot; the social-force
+    # parameters (socialforce 0.2.3's defaults) are read by human_model=social_force only
+    human_model: str = CrowdConfig.human_model
+    robot_visible: bool = CrowdConfig.robot_visible
+    sf_tau: float = CrowdConfig.sf_tau
+    sf_v0: float = CrowdConfig.sf_v0
+    sf_sigma: float = CrowdConfig.sf_sigma
+    sf_substeps: int = CrowdConfig.sf_substeps
 
 
 @dataclass
@@ -332,8 +340,8 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _check(low <= high, "env.min_humans/env.max_humans",
            f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
     _one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
-    try:  # the obstacle geometry and the lidar: CrowdConfig's checks, whose messages start with the key
-        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS)})
+    try:  # the obstacle geometry, the lidar, the humans' model: CrowdConfig's checks, whose messages start with the key
+        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
@@ -538,10 +546,11 @@ def check_counterfactual(run: RunConfig) -> None:
     _check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
            f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
     _check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
-    if c.mode != "off" and getattr(run.env, "robot_visible", False):
-        raise ConfigError("train.counterfactual.mode: counterfactual experience replays the humans' real next state "
-                          "after another action, which is exact only while they ignore the robot; env.robot_visible "
-                          "is true (set train.counterfactual.mode=off or env.robot_visible=false)")
+    if c.mode != "off" and run.env.robot_visible and run.env.human_model != "linear":
+        raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
+                          f"after another action, which is exact only while they ignore the robot; with "
+                          f"env.robot_visible=true the {run.env.human_model} humans react to it (set "
+                          f"train.counterfactual.mode=off or env.robot_visible=false)")
 
 
 def counterfactual_on(run: RunConfig) -> bool:

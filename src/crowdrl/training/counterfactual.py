@@ -83,9 +83,9 @@ class CounterfactualExperience(UpdatePart):
         if config.robot_kinematics != "unicycle":
             raise ValueError(f"counterfactual experience needs the unicycle's discrete actions, got "
                              f"{config.robot_kinematics!r}")
-        if getattr(config, "robot_visible", False):
+        if config.humans_react_to_robot:
             raise ValueError("counterfactual experience replays the humans' real next state, exact only while they "
-                             "ignore the robot; this config has a visible robot")
+                             "ignore the robot; with this config's visible robot they react to it")
         self.config, self.net, self.obs_keys = config, net, list(obs_keys)
         self.mode, self.actions, self.weight = mode, actions, float(weight)
         self.k = NUM_ACTIONS if actions == "all" else int(k)

@@ -24,7 +24,7 @@ from crowdrl.models import make_q_actor
 from crowdrl.models.lazy_compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
-from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
+from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
 from crowdrl.training.config import RunConfig, crowd_range, sees_obstacles
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.counterfactual import CounterfactualExperience
@@ -72,7 +72,7 @@ def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int
         low = high = num_humans
     return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=high, min_humans=low if low < high else None,
                        orca_backend=run.env.orca_backend, robot_kinematics=robot_kinematics,
-                       **{k: getattr(run.env, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS)})
+                       **{k: getattr(run.env, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
 
 
 def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = None, seed: int | None = None,

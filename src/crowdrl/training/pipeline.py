@@ -13,6 +13,7 @@ from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json
+from crowdrl.sim.config import CrowdConfig
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
 from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, stored_config, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
@@ -227,17 +228,28 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
 BASELINES = ("orca",)
 
 
+def _eval_crowd(scenario: str, humans: dict[str, Any]) -> CrowdConfig:
+    """The evaluation's crowd constants with the humans' keys of ``eval.*``, refused naming the key."""
+    try:
+        return CrowdConfig(scenario=scenario, **humans)
+    except ValueError as exc:
+        raise ValueError(f"eval.{exc}") from None
+
+
 def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = None, scenario: str | None = None,
                   seed: int = TEST_SEED, episodes: int = 1000, num_humans: int | None = None, batch: int = EVAL_BATCH,
-                  record_episode: int | None = None, device: str = "cpu") -> tuple[dict[str, Any], Trajectory | None]:
+                  record_episode: int | None = None, device: str = "cpu", human_model: str | None = None,
+                  robot_visible: bool | None = None) -> tuple[dict[str, Any], Trajectory | None]:
     """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
     test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
-    recorded trajectory. Bad names and values raise ``ValueError`` naming the argument."""
+    recorded trajectory. ``human_model``/``robot_visible`` (``None``: the checkpoint's; ORCA humans blind to
+    the robot for a baseline) change how the humans move. Bad names and values raise ``ValueError`` naming
+    the argument."""
     from dataclasses import replace
 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
-    from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
+    from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
     from crowdrl.training.config import available_memory, planned_states, planner_bytes
 
@@ -257,15 +269,20 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
     if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
         raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
+    humans = {k: v for k, v in (("human_model", human_model), ("robot_visible", robot_visible)) if v is not None}
     if policy == "orca":
-        cfg = CrowdConfig(scenario=scenario or "circle")
+        cfg = _eval_crowd(scenario or "circle", humans)
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
         metrics, traj = evaluate_orca(cfg, seed=seed, episodes=episodes, batch=batch, device=device,
                                       record_episode=record_episode)
-        return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca"), traj
+        shown = {"human_model": cfg.human_model, "robot_visible": cfg.robot_visible} if humans else {}
+        return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca", **shown), traj
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
+    if humans:
+        _eval_crowd(scenario or run.env.scenario, {"human_model": run.env.human_model, **humans})
+        run = replace(run, env=replace(run.env, **humans))
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
@@ -281,5 +298,6 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}"
                          + ("+planning" if run.planning.enabled else ""),
                          checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
-                         train_scenario=run.env.scenario, train_seed=run.seed)
+                         train_scenario=run.env.scenario, train_seed=run.seed,
+                         **({"human_model": run.env.human_model, "robot_visible": run.env.robot_visible} if humans else {}))
     return record, traj

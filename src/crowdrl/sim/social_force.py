@@ -1,0 +1,124 @@
+"""Batched Helbing–Molnár social force: what the ``socialforce`` package (0.2.3, S. Kreiss, MIT; the
+package CrowdNav's social-force agents call) computes in one ``Simulator`` call, for B scenes at once.
+
+Per pedestrian ``a`` with position ``r_a``, velocity ``v_a``, preferred speed ``v0_a`` and desired
+direction ``e_a`` (the unit vector to its destination; without one, its velocity's direction; zero at the
+destination), one call of ``substeps`` sub-steps of ``dt = time_step / substeps`` does, each sub-step:
+
+* driving term ``F0_a = (v0_a e_a - v_a) / tau``;
+* repulsion from every other pedestrian ``b``: the potential ``V(b) = v0 exp(-b / sigma)`` of the
+  semi-minor axis ``2b = sqrt((|r_ab| + |r_ab - s_b e_b|)^2 - s_b^2)`` of the ellipse through
+  ``a`` with foci ``r_b`` and ``r_b + s_b e_b``, ``r_ab = r_a - r_b``, ``s_b = 0.4 s * |v_b|``
+  (the package's fixed 0.4 s step; the argument of the root floored at 1e-8, where the force is
+  zero); the force is ``f_ab = -grad_{r_ab} V``, weighted 1 when ``b`` lies within ``a``'s field of
+  view (200 degrees about ``e_a``, strictly) and 0.5 otherwise;
+* leapfrog integration of ``F = F0 + sum_b w_ab f_ab`` (``r += v dt + F dt^2 / 2``,
+  ``v += (a_prev + F) dt / 2`` with ``a_prev`` the previous sub-step's ``F``, zero at the first),
+  then the speed capped at 1.3 ``v0_a``.
+
+The answer is the velocity after the last sub-step (the positions inside the call are discarded: the
+simulator moves every human with its new velocity, as CrowdNav moves an agent with its policy's
+velocity). Pure torch, no Python loop over scenes or agents; the gradient is written out (the package
+takes it with autograd).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+# The package's constants (socialforce 0.2.3): facts of the reference, not tuning knobs.
+FIELD_OF_VIEW_DEG = 200.0  # FieldOfView(twophi=200)
+OUT_OF_VIEW_FACTOR = 0.5  # FieldOfView.out_of_view_factor
+MAX_SPEED_MULTIPLIER = 1.3  # Simulator.max_speed_multiplier
+POTENTIAL_STEP = 0.4  # PedPedPotential.delta_t_step, s
+SQRT_FLOOR = 1e-8  # PedPedPotential.b clamps the root's argument at this
+
+__all__ = ["social_force_velocities", "FIELD_OF_VIEW_DEG", "OUT_OF_VIEW_FACTOR", "MAX_SPEED_MULTIPLIER",
+           "POTENTIAL_STEP"]
+
+
+def _desired_directions(position: Tensor, velocity: Tensor, goal: Tensor, has_goal: Tensor | None) -> Tensor:
+    """Unit vectors to the goals (to the velocity's direction where ``has_goal`` is false), zero at the goal."""
+    to = goal - position
+    if has_goal is not None:
+        to = torch.where(has_goal.unsqueeze(-1), to, velocity)
+    norm = torch.linalg.vector_norm(to, dim=-1, keepdim=True)
+    return to / torch.where(norm == 0, torch.ones_like(norm), norm)
+
+
+def _repulsion(position: Tensor, speed: Tensor, e: Tensor, pair: Tensor, v0: float, sigma: float) -> Tensor:
+    """``sum_b w_ab f_ab`` per pedestrian ``[B, M, 2]``; ``pair [B, M, M]`` marks the pairs that interact.
+
+    Written in the package's order of float operations (its autograd backward included), so that float32
+    answers agree to the last bit (``experiments/human_model_agreement.py``)."""
+    r = position.unsqueeze(2) - position.unsqueeze(1)  # r_ab = r_a - r_b  [B, a, b, 2]
+    s = (POTENTIAL_STEP * speed).unsqueeze(1)  # s_b  [B, 1, b]
+    q = r - s.unsqueeze(-1) * e.unsqueeze(1)  # r_ab - s_b e_b
+    n1 = torch.linalg.vector_norm(r, dim=-1)
+    n2 = torch.linalg.vector_norm(q, dim=-1)
+    total = n1 + n2
+    inner = total ** 2 - s ** 2
+    root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))  # 2b
+    value = v0 * torch.exp(-(0.5 * root) / sigma)
+    # f_ab = -dV/dr_ab, the chain rule in autograd's order: V -> b -> root -> inner -> n1 + n2 -> r_ab
+    g = -(value / sigma) * 0.5 / (2 * root) * (2 * total)
+    live = pair & (inner >= SQRT_FLOOR)
+    g = g.unsqueeze(-1)
+    grad = r / n1.unsqueeze(-1) * g + q / n2.unsqueeze(-1) * g
+    force = torch.where(live.unsqueeze(-1), -grad, 0.0)
+    # field of view: b (at -r_ab from a) in sight of a when e_a . (-r_ab) > |r_ab| cos(phi)
+    cos_phi = math.cos(FIELD_OF_VIEW_DEG / 2.0 / 180.0 * math.pi)
+    ahead = torch.einsum("zaj,zabj->zab", e, -r)
+    w = torch.where(ahead > n1 * cos_phi, 1.0, OUT_OF_VIEW_FACTOR)
+    return torch.sum(w.unsqueeze(-1) * force, dim=2)
+
+
+def social_force_velocities(
+    position: Tensor,
+    velocity: Tensor,
+    goal: Tensor,
+    preferred_speed: Tensor,
+    *,
+    time_step: float,
+    substeps: int,
+    tau: float,
+    v0: float,
+    sigma: float,
+    has_goal: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> Tensor:
+    """New velocities ``[B, M, 2]`` of ``M`` pedestrians per scene after one social-force call.
+
+    Args:
+        position, velocity, goal: ``[B, M, 2]``; a pedestrian starts the call at rest in acceleration.
+        preferred_speed: ``[B, M]``; the speed cap is 1.3 times it.
+        time_step: the call's duration, split into ``substeps`` leapfrog sub-steps.
+        tau: relaxation time (s); ``v0`` (m²/s²) and ``sigma`` (m): the repulsive potential.
+        has_goal: ``[B, M]`` bool, false where a pedestrian has no destination (its desired direction is
+            its velocity's: the package's NaN destination). ``None``: all have one.
+        mask: ``[B, M]`` bool, false marks an absent pedestrian: it exerts no force and keeps its velocity.
+    """
+    B, M, _ = position.shape
+    dt = time_step / substeps
+    eye = torch.eye(M, dtype=torch.bool, device=position.device)
+    pair = ~eye if mask is None else ~eye & mask.unsqueeze(1) & mask.unsqueeze(2)
+    pair = pair.expand(B, M, M)
+    max_speed = preferred_speed * MAX_SPEED_MULTIPLIER
+    pos, vel = position, velocity
+    acc = torch.zeros_like(velocity)
+    inv_tau = 1.0 / torch.tensor(tau, dtype=position.dtype, device=position.device)
+    for _ in range(int(substeps)):
+        e = _desired_directions(pos, vel, goal, has_goal)
+        drive = inv_tau * (preferred_speed.unsqueeze(-1) * e - vel)
+        speed = torch.linalg.vector_norm(vel, dim=-1)
+        force = drive + _repulsion(pos, speed, e, pair, v0, sigma)
+        pos = pos + vel * dt + 0.5 * force * dt ** 2
+        vel = vel + 0.5 * (acc + force) * dt
+        acc = force
+        vel = vel * (max_speed.unsqueeze(-1) / torch.linalg.vector_norm(vel, dim=-1, keepdim=True)).clamp(max=1.0)
+    if mask is not None:
+        vel = torch.where(mask.unsqueeze(-1), vel, velocity)
+    return vel
