@@ -358,6 +358,9 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
+    _check(run.resume is None or run.resume.strip() != "", "resume",
+           "is empty (resume= with nothing after it, e.g. resume=$RUN with RUN unset): give the run folder to "
+           "continue, resume=runs/<folder>, or leave resume out to start a new run")
     _check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
            f"hydra.run.dir=<folder> (train.py), out=<folder> (demo.py) or resume=<folder>")
     check_device(run.device)

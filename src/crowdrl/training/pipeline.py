@@ -12,7 +12,7 @@ import torch
 from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
-from crowdrl.files import atomic_write_json
+from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
 from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, stored_config, to_dict, validate
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
@@ -48,6 +48,9 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
             return done
         if prepare is not None and resumed is None:
             prepare()
+        if resumed is not None:  # a checkpoint write that a kill cut short left its temporary
+            for name in ("last.pt", "best.pt"):
+                remove_stale_temporaries(run_dir / "checkpoints" / name)
     except BaseException:
         lock.release()
         raise
