@@ -119,3 +119,27 @@ def test_an_omegaconf_config_is_not_written(tmp_path):
 
     with pytest.raises(TypeError, match=r"checkpoint payload\['config'\] is a omegaconf"):
         save_checkpoint(tmp_path / "c.pt", {"config": OmegaConf.structured(RunConfig())}, "fp")
+
+
+def test_a_saved_replay_buffer_holds_no_uninitialised_bytes():
+    """train.save_buffer=true: the slots never written (torch.empty's leftovers) are zero in the
+    checkpoint, so identical runs write identical last.pt files."""
+    import io
+
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from crowdrl.training.factories import buffer_state_dict
+
+    saved = []
+    for garbage in (7.0, -3.0):  # what uninitialised memory happened to hold in two identical runs
+        buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=2)
+        buffer.extend(TensorDict({"a": torch.ones(3, 2), "c": torch.ones(3, dtype=torch.int64)}, [3]))
+        stored = buffer.state_dict()["_storage"]["_storage"]
+        stored["a"][3:], stored["c"][3:] = garbage, int(garbage)
+        buf = io.BytesIO()
+        torch.save(buffer_state_dict(buffer), buf)
+        saved.append(buf.getvalue())
+        state = buffer_state_dict(buffer)["_storage"]["_storage"]
+        assert state["a"][3:].eq(0).all() and state["c"][3:].eq(0).all() and state["a"][:3].eq(1).all()
+    assert saved[0] == saved[1]
