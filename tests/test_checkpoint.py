@@ -45,7 +45,7 @@ def test_a_pickled_payload_is_refused_naming_the_file_and_runs_nothing(tmp_path)
 
 def test_garbage_is_reported_as_corrupt_without_advising_an_unsafe_load(tmp_path):
     path = tmp_path / "noise.pt"
-    path.write_bytes(np.random.default_rng(0).bytes(3000))
+    path.write_bytes(b"PK\x03\x04" + np.random.default_rng(0).bytes(3000))  # a torch file's header, then noise
     with pytest.raises(CheckpointError, match=r"noise\.pt is not a readable checkpoint \(truncated or corrupt\?\)") as err:
         load_checkpoint(path)
     assert "weights_only" not in str(err.value)
@@ -143,3 +143,11 @@ def test_a_saved_replay_buffer_holds_no_uninitialised_bytes():
         state = buffer_state_dict(buffer)["_storage"]["_storage"]
         assert state["a"][3:].eq(0).all() and state["c"][3:].eq(0).all() and state["a"][:3].eq(1).all()
     assert saved[0] == saved[1]
+
+
+def test_a_text_file_given_as_a_checkpoint_is_named_not_a_torch_file(tmp_path):
+    """Not a bare "105" (the unpickler's KeyError) at the end of the message."""
+    path = tmp_path / "notes.pt"
+    path.write_text("hello\nworld\n")
+    with pytest.raises(CheckpointError, match=r"notes\.pt is not a crowdrl checkpoint \(not a torch file"):
+        load_checkpoint(path)

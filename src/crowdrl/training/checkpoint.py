@@ -95,6 +95,9 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
+    if not is_torch_file(path):
+        raise CheckpointError(f"{path} is not a crowdrl checkpoint (not a torch file: no zip or pickle header, "
+                              f"e.g. a text file); give a run folder or its checkpoints/best.pt")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -123,9 +126,18 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
     return data
 
 
+def is_torch_file(path: Path | str) -> bool:
+    """Whether ``path`` starts as a ``torch.save`` file does: a zip archive (the default format) or
+    a pickle of protocol 2 or later (the legacy format)."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    return head.startswith(b"PK\x03\x04") or (len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5)
+
+
 def _first_line(exc: BaseException) -> str:
     lines = [line for line in str(exc).splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
+    first = lines[0] if lines else ""
+    return first if len(first) > 8 else f"{type(exc).__name__}: {first}".rstrip(": ")  # never a bare "105"
 
 
 def check_finite_weights(module: torch.nn.Module, path: Path | str, what: str = "network") -> None:
