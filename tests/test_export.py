@@ -271,3 +271,26 @@ def test_lstm_rls_order_of_humans_with_ties_is_the_same_in_onnx():
     got = onnxruntime.InferenceSession(buf.getvalue(), providers=["CPUExecutionProvider"]).run(
         None, {"humans": humans.numpy(), "mask": mask.numpy()})[0]
     np.testing.assert_array_equal(got, sort_far_to_near(humans, mask)[0].numpy())
+
+
+@pytest.mark.parametrize("value", ["0", "abc", "-0.25", "nan", None])
+def test_the_example_refuses_bad_metadata_or_a_non_model_in_one_line(exported, tmp_path, capsys, value):
+    """A time step of "0" or "abc" in the model's metadata (or a text file given as the model): exit 2
+    naming the field (or the model), not a ZeroDivisionError or onnxruntime's traceback."""
+    import onnx
+
+    path = tmp_path / "p.onnx"
+    if value is None:
+        path.write_text("not a model\n")
+    else:
+        model = onnx.load(str(exported[1]))
+        (entry,) = [m for m in model.metadata_props if m.key == "crowdrl.time_step"]
+        entry.value = value
+        onnx.save(model, str(path))
+    with pytest.raises(SystemExit) as stop:
+        load_example().main([str(path)])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2
+    expected = ("not an ONNX model" if value is None
+                else f"crowdrl.time_step: must be a finite number of seconds > 0, got {value!r}")
+    assert expected in err and "Traceback" not in err, err
