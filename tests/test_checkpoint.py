@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from crowdrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from crowdrl.training.checkpoint import (FORMAT_VERSION, CheckpointError, config_fingerprint, load_checkpoint,
+                                         save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
 
 
@@ -151,3 +152,18 @@ def test_a_text_file_given_as_a_checkpoint_is_named_not_a_torch_file(tmp_path):
     path.write_text("hello\nworld\n")
     with pytest.raises(CheckpointError, match=r"notes\.pt is not a crowdrl checkpoint \(not a torch file"):
         load_checkpoint(path)
+
+
+def test_a_fingerprint_mismatch_names_each_key_that_differs_and_both_values(tmp_path):
+    """config.yaml edited after the run: the refusal names env.num_humans and seed, with both values."""
+    stored = to_dict(RunConfig())
+    path = tmp_path / "last.pt"
+    save_checkpoint(path, {"config": stored}, config_fingerprint(stored))
+    edited = to_dict(RunConfig(seed=3))
+    edited["env"]["num_humans"] = 7
+    edited["train"]["total_frames"] = 5  # a budget: not part of the fingerprint, not named
+    with pytest.raises(CheckpointError) as err:
+        load_checkpoint(path, config_fingerprint(edited), config=edited)
+    message = str(err.value)
+    assert "env.num_humans: 7 here, 10 in the checkpoint" in message and "seed: 3 here, 0 in the checkpoint" in message
+    assert "total_frames" not in message

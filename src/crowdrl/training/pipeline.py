@@ -150,7 +150,7 @@ def checkpoint_path(path: Path | str) -> Path:
         path / "checkpoints" / "best.pt"
 
 
-def load_trained_network(path: Path | str, fingerprint: str | None = None
+def load_trained_network(path: Path | str, fingerprint: str | None = None, *, config: dict | None = None
                          ) -> tuple[RunConfig, torch.nn.Module, dict[str, Any]]:
     """The run config, the Q network (eval mode: noise and dropout off) and the raw payload of a
     trained checkpoint (a run folder or a ``best.pt``).
@@ -158,10 +158,10 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
     config the code cannot rebuild, weights that do not fit the network of the config, NaN or
     infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
-    run with another configuration.
+    run with another configuration (given ``config`` too, the loading run's: naming the keys that differ).
     """
     ckpt = checkpoint_path(path)
-    data = load_checkpoint(ckpt, fingerprint)
+    data = load_checkpoint(ckpt, fingerprint, config=config)
     if "net" not in data or "config" not in data:
         raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
                               f"checkpoints/best.pt")
@@ -213,7 +213,7 @@ def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | No
 
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:
     """Greedy evaluation of ``checkpoints/best.pt`` on the test cases of the run's scenario."""
-    _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)))
+    _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)), config=to_dict(run))
     predictor = load_trained_predictor(run, best, checkpoint_path(run_dir))
     metrics, traj = evaluate_network(run, net, episodes=run.train.test_episodes, record_episode=record_episode,
                                      predictor=predictor)

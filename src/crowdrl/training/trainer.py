@@ -213,7 +213,7 @@ class Trainer:
         last = self.ckpt_dir / "last.pt"
         data: dict[str, Any] = {}
         if last.exists():
-            data = load_checkpoint(last, self.fingerprint)
+            data = load_checkpoint(last, self.fingerprint, config=self.config_dict)
             try:
                 self.load_state_dict(data)
             except (KeyError, RuntimeError, ValueError, TypeError) as exc:
