@@ -202,7 +202,7 @@ class _Payload:
         return os.system, (f"touch '{self.marker}'",)
 
 
-@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format", "unread key"])
+@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format", "unread key", "check", "exists"])
 def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     folder, _ = exported
     args, words = [f"checkpoint={folder}", f"out={tmp_path / 'p.onnx'}"], []
@@ -217,6 +217,12 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     elif bad == "out":
         (tmp_path / "file").write_text("")
         args[1], words = f"out={tmp_path / 'file' / 'p.onnx'}", ["out: cannot write", "is a file, not a folder"]
+    elif bad == "check":  # not a bool: was taken as true
+        args.append("check=maybe")
+        words = ["check: got 'maybe'; true or false"]
+    elif bad == "exists":  # was overwritten silently
+        (tmp_path / "p.onnx").write_text("mine")
+        words = ["out:", "p.onnx exists; pass overwrite=true"]
     elif bad == "format":
         args.append("format=tflite")
         words = ["format: got 'tflite'; allowed: onnx"]
@@ -227,7 +233,11 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
-    assert not (tmp_path / "p.onnx").exists() and not (tmp_path / "marker").exists()
+    if bad == "exists":
+        assert (tmp_path / "p.onnx").read_text() == "mine"
+    else:
+        assert not (tmp_path / "p.onnx").exists()
+    assert not (tmp_path / "marker").exists()
 
 
 def test_export_traces_the_compiled_attention_kernel_as_plain_torch(exported, tmp_path):

@@ -240,6 +240,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
+    from crowdrl.evaluation.rollout import kept_bytes
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS, CrowdConfig
     from crowdrl.sim.rng import MAX_SEED
     from crowdrl.training.config import available_memory, planned_states, planner_bytes
@@ -260,6 +261,13 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
     if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
         raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
+    # the metrics keep a row per episode: refuse a count whose records would not fit in memory
+    max_steps = max(CrowdConfig(scenario=s).max_steps for s in ([scenario] if scenario else SCENARIOS))
+    kept, free = kept_bytes(episodes, max_steps), available_memory(device if device.startswith("cuda") else "cpu")
+    if free is not None and kept > free:
+        raise ValueError(f"eval.episodes: {episodes} episodes keep ~{kept / 2**30:,.1f} GiB of per-episode records "
+                         f"(up to {max_steps} rewards each), more than the {free / 2**30:,.1f} GiB of memory available; "
+                         f"lower eval.episodes (another eval.seed gives other cases)")
     if policy == "orca":
         cfg = CrowdConfig(scenario=scenario or "circle")
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
