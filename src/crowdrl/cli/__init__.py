@@ -11,7 +11,8 @@ by ``experiments/<name>.py``:
 The configs come from the package (:func:`crowdrl.resources.config_dir`), never from the current
 directory; what the commands write (``runs/``, ``multirun/``, ``results/``) is relative to it.
 
-Every command fails the same way (:func:`one_line_errors` around its ``main``): refused input, a
+Every command fails the same way (:func:`one_line_errors` around its ``main``, :func:`hydra_command`
+for the Hydra ones): refused input, a
 Hydra or OmegaConf error (an unknown option, a value of the wrong type, a missing config), a full
 disk or a read-only or forbidden folder end it with one line ``<program>: <message>`` on stderr and
 exit status 2; Ctrl-C / SIGTERM with 130. Only a bug shows a traceback (exit 1).
@@ -136,5 +137,20 @@ def one_line_errors(module: str) -> Callable[[F], F]:
                     os.environ["HYDRA_FULL_ERROR"] = previous
 
         return run  # type: ignore[return-value]
+
+    return decorate
+
+
+def hydra_command(module: str, config_name: str) -> Callable[[F], F]:
+    """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
+    :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
+    job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command."""
+    def decorate(task: F) -> F:
+        import hydra
+
+        from crowdrl.resources import config_dir
+
+        hydra_main = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")
+        return one_line_errors(module)(hydra_main(one_line_errors(module)(task)))
 
     return decorate

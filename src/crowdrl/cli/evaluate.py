@@ -16,11 +16,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error, one_line_errors
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -57,8 +56,7 @@ def check_keys(c: dict, overrides: list[str]) -> None:
                           f"(the crowd size is eval.num_humans)")
 
 
-@one_line_errors("evaluate")
-@hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
+@hydra_command("evaluate", "evaluate")
 def main(cfg: DictConfig) -> dict:
     out = Path(HydraConfig.get().runtime.output_dir)
     try:

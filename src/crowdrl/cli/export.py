@@ -19,10 +19,9 @@ import os
 from pathlib import Path
 from typing import NoReturn
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error, one_line_errors
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir, onnx_example
 
 # the check runs the torch policy a few times: compiling SG-D3QN's pairwise kernel for that would
@@ -36,8 +35,7 @@ def fail(message: str) -> NoReturn:
     exit_with_error("export", message)
 
 
-@one_line_errors("export")
-@hydra.main(config_path=CONF_DIR, config_name="export", version_base="1.3")
+@hydra_command("export", "export")
 def main(cfg: DictConfig) -> dict:
     c = OmegaConf.to_container(cfg, resolve=True)
     from crowdrl.export import FORMATS

@@ -37,10 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error, one_line_errors
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
 from crowdrl.tables import interval_cell, markdown_table
 
@@ -524,8 +523,7 @@ if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 
 
-@one_line_errors("reproduce")
-@hydra.main(config_path=CONF_DIR, config_name="reproduce", version_base="1.3")
+@hydra_command("reproduce", "reproduce")
 def main(cfg: DictConfig) -> None:
     try:
         plan = make_plan(OmegaConf.to_container(cfg, resolve=True))

@@ -13,11 +13,10 @@ import math
 import os
 from pathlib import Path
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import command, exit_with_error, folder_error_line, one_line_errors
+from crowdrl.cli import command, exit_with_error, folder_error_line, hydra_command
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -46,8 +45,7 @@ def _register_schema() -> None:
 _register_schema()
 
 
-@one_line_errors("train")
-@hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
+@hydra_command("train", "config")
 def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
     from crowdrl.training.pipeline import completed_summary

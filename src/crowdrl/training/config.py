@@ -366,7 +366,18 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     check_device(run.device)
     if resources:
         check_resources(run)
+        check_logger(run)
     return run
+
+
+def check_logger(run: RunConfig) -> None:
+    """Refuse (naming ``logger.mode``) a wandb run to start online without credentials: wandb would
+    fail, or wait for a key, once the run folder is written."""
+    from crowdrl.training.scalars import has_wandb_credentials, wandb_mode
+
+    if run.logger.name == "wandb" and wandb_mode(run.logger.mode) == "online" and not has_wandb_credentials():
+        raise ConfigError("logger.mode: online, but wandb has no credentials (no WANDB_API_KEY, no netrc entry): "
+                          "run `wandb login` first, or use logger.mode=offline and `wandb sync` later")
 
 
 # Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),
