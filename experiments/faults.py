@@ -224,6 +224,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         # what a kill during the write of last.pt leaves (a dead process's temporary, buffer-sized)
         dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
         stale = folder / "checkpoints" / f".last.pt.{int(dead.stdout)}.0123456789ab.tmp"
+        stale.parent.mkdir(parents=True, exist_ok=True)  # a run killed before its first checkpoint has none
         stale.write_bytes(b"\0" * 4096)
         proc = train(f"resume={folder}")
         same_weights, same_metrics = same_result(ref, folder)
