@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
-from crowdrl.evaluation.report import parse_run_group
+from crowdrl.evaluation.report import RecordError, parse_run_group, read_eval_record
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.sim.config import SCENARIOS
 from crowdrl.tables import interval_cell, markdown_table
@@ -77,7 +77,7 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
         if scenario == VAL_SCENARIO:
             records = {label: [val_record(r, last) for r in runs] for label, runs in groups}
         else:
-            records = {label: [json.loads((r / f"eval-{scenario}" / "eval.json").read_text()) for r in runs]
+            records = {label: [read_eval_record(r / f"eval-{scenario}" / "eval.json") for r in runs]
                        for label, runs in groups}
         first = groups[0][0]
         for label, recs in records.items():
@@ -131,7 +131,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--last must be >= 1")
     scenarios = [VAL_SCENARIO] if args.split == "val" else args.scenarios
     groups = [parse_group(g, scenarios) for g in args.group]
-    rows = compare(groups, scenarios, args.reps, args.last)
+    try:
+        rows = compare(groups, scenarios, args.reps, args.last)
+    except RecordError as exc:  # a record read back that crowdrl would not write: file and field named
+        p.exit(2, f"{p.prog}: {exc}\n")
     args.out.mkdir(parents=True, exist_ok=True)
     result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows}
     atomic_write_json(args.out / "table.json", result)

@@ -4,8 +4,9 @@
     python experiments/faults.py --json     # {"meta": ..., "rows": [...]}; exit status 1 unless every row is ok
 
 Each fault runs `experiments/train.py` on the smoke budget in a scratch folder (a few minutes in
-all on 2 cores). A run killed (SIGKILL or SIGTERM) and resumed with `train.save_buffer=true` must
-end with the same weights and test metrics, bit for bit, as the run that was never stopped. The same behaviours are
+all on 2 cores), or another command that must refuse in one line (exit 2) and leave nothing
+behind. A run killed (SIGKILL or SIGTERM) and resumed with `train.save_buffer=true` must end with
+the same weights and test metrics, bit for bit, as the run that was never stopped. The same behaviours are
 asserted in `tests/test_reliability.py`.
 """
 
@@ -33,6 +34,30 @@ ENV = {**os.environ, "WANDB_MODE": "offline"}
 
 def train(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
     return subprocess.run([*TRAIN, *args], env=ENV, capture_output=True, text=True, timeout=timeout)
+
+
+def cli(name: str, *args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+    """Run ``experiments/<name>.py`` with ``args``."""
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / f"{name}.py"), *args], env=ENV, cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def one_line_exit_2(proc: subprocess.CompletedProcess, *words: str) -> bool:
+    """Exit 2 with one line on stderr holding ``words``, no traceback."""
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    return proc.returncode == 2 and len(lines) == 1 and all(w in lines[0] for w in words)
+
+
+# train.py with every atomic write of a checkpoint failing as on a full disk
+FULL_DISK = """import errno, os, sys
+import crowdrl.training.checkpoint as checkpoint
+def full(path, data):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+checkpoint.atomic_write_bytes = full
+sys.argv = ["train.py", *sys.argv[1:]]
+from crowdrl.cli.train import main
+main()
+"""
 
 
 def last_line(text: str) -> str:
@@ -122,6 +147,60 @@ def main(argv: list[str] | None = None) -> list[dict]:
     record("resume with a conflicting override (seed=5)", "exit 2 naming the override",
            f"exit {proc.returncode}: {last_line(proc.stderr)}", proc.returncode == 2 and "seed=5" in proc.stderr)
 
+    # one clear line, exit 2, nothing left behind (issue 40)
+    for name, args, words in (("train", ["seed=abc"], ["seed:"]), ("train", ["resume="], ["resume:"]),
+                              ("evaluate", ["env=mars"], ["env/mars"]),
+                              ("evaluate", ["policy=orca", "eval.episodes=1000000000"], ["eval.episodes"]),
+                              ("demo", ["train.num_envs=abc"], ["train.num_envs"]),
+                              ("export", [f"checkpoint={done}", "check=maybe"], ["check:"])):
+        where = scratch / f"cli-{name}-{len(rows)}"
+        where.mkdir()
+        proc = cli(name, *args, cwd=where)
+        record(f"{name}.py {' '.join(a.replace(str(done), '<run>') for a in args)}",
+               "exit 2, one line naming the key, no folder", f"exit {proc.returncode}: {last_line(proc.stderr)}",
+               one_line_exit_2(proc, *words) and not any(where.iterdir()))
+    existing = scratch / "existing.onnx"
+    existing.write_text("mine")
+    proc = cli("export", f"checkpoint={done}", f"out={existing}")
+    record("export.py out=<an existing file>", "exit 2 naming out, file unchanged",
+           f"exit {proc.returncode}: {last_line(proc.stderr)}",
+           one_line_exit_2(proc, "out:", "overwrite=true") and existing.read_text() == "mine")
+    text = scratch / "notes.pt"
+    text.write_text("hello\n")
+    proc = cli("evaluate", f"checkpoint={text}", f"hydra.run.dir={scratch / 'eval-text'}")
+    record("evaluate.py checkpoint=<a text file>", "exit 2, 'not a torch file'", f"exit {proc.returncode}: "
+           f"{last_line(proc.stderr)}", one_line_exit_2(proc, "not a torch file") and not (scratch / "eval-text").exists())
+    from omegaconf import OmegaConf
+
+    humans = int(OmegaConf.load(done / "config.yaml").env.num_humans)
+    for damage, words in (("unknown key", ["foo: Key 'foo'"]), ("_target_", ["_target_"]),
+                          ("edited env.num_humans", [f"env.num_humans: {humans + 1} here, {humans} in the checkpoint"])):
+        folder = scratch / f"config-{damage.replace(' ', '-')}"
+        shutil.copytree(done, folder)
+        (folder / "summary.json").unlink()  # not complete: the resume reads its checkpoint
+        config = (folder / "config.yaml").read_text()
+        if damage == "unknown key":
+            config += "foo: 1\n"
+        elif damage == "_target_":
+            config = "_target_: os.system\n" + config
+        else:
+            edited = OmegaConf.create(config)
+            edited.env.num_humans = humans + 1
+            config = OmegaConf.to_yaml(edited)
+        (folder / "config.yaml").write_text(config)
+        before = hashes(folder)
+        proc = train(f"resume={folder}")
+        record(f"resume, config.yaml with {damage}", "exit 2 naming the key, folder unchanged",
+               f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}",
+               one_line_exit_2(proc, *words) and hashes(folder) == before)
+    disk = scratch / "full-disk"
+    proc = subprocess.run([sys.executable, "-c", FULL_DISK, *SMOKE, f"hydra.run.dir={disk}"], env=ENV,
+                          capture_output=True, text=True, timeout=600)
+    record("disk full (ENOSPC) at the first checkpoint", "exit 2 naming last.pt, status failed, no temporary",
+           f"exit {proc.returncode}, status {status(disk)}: {last_line(proc.stderr)[:70]}",
+           one_line_exit_2(proc, "last.pt", "ENOSPC", "resume=") and status(disk) == "failed"
+           and not list(disk.rglob("*.tmp")))
+
     term = scratch / "sigterm"
     proc = subprocess.Popen([*TRAIN, *SMOKE, "train.total_frames=640", "train.checkpoint_every_frames=100000",
                              f"hydra.run.dir={term}"], env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -142,13 +221,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for sig in (signal.SIGKILL, signal.SIGTERM):
         folder = scratch / f"killed-{sig.name}"
         frames = kill_when_checkpointed(exact, folder, sig, at_frames=192)
+        # what a kill during the write of last.pt leaves (a dead process's temporary, buffer-sized)
+        dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+        stale = folder / "checkpoints" / f".last.pt.{int(dead.stdout)}.0123456789ab.tmp"
+        stale.parent.mkdir(parents=True, exist_ok=True)  # a run killed before its first checkpoint has none
+        stale.write_bytes(b"\0" * 4096)
         proc = train(f"resume={folder}")
         same_weights, same_metrics = same_result(ref, folder)
         record(f"{sig.name} at frame >= {frames}, resume (save_buffer=true)",
-               "bit-identical final weights and test metrics",
+               "bit-identical final weights and test metrics, no temporary left",
                f"exit {proc.returncode}, weights {'same' if same_weights else 'DIFFER'}, "
-               f"metrics {'same' if same_metrics else 'DIFFER'}",
-               proc.returncode == 0 and same_weights and same_metrics)
+               f"metrics {'same' if same_metrics else 'DIFFER'}, temporary {'left' if stale.exists() else 'gone'}",
+               proc.returncode == 0 and same_weights and same_metrics and not stale.exists())
 
     shutil.rmtree(scratch, ignore_errors=True)
     emit(rows, columns=[Column("fault"), Column("expected"), Column("ok"), Column("observed")], as_json=args.json,

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from crowdrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from crowdrl.training.checkpoint import (FORMAT_VERSION, CheckpointError, config_fingerprint, load_checkpoint,
+                                         save_checkpoint)
 from crowdrl.training.config import RunConfig, to_dict
 
 
@@ -45,7 +46,7 @@ def test_a_pickled_payload_is_refused_naming_the_file_and_runs_nothing(tmp_path)
 
 def test_garbage_is_reported_as_corrupt_without_advising_an_unsafe_load(tmp_path):
     path = tmp_path / "noise.pt"
-    path.write_bytes(np.random.default_rng(0).bytes(3000))
+    path.write_bytes(b"PK\x03\x04" + np.random.default_rng(0).bytes(3000))  # a torch file's header, then noise
     with pytest.raises(CheckpointError, match=r"noise\.pt is not a readable checkpoint \(truncated or corrupt\?\)") as err:
         load_checkpoint(path)
     assert "weights_only" not in str(err.value)
@@ -119,3 +120,50 @@ def test_an_omegaconf_config_is_not_written(tmp_path):
 
     with pytest.raises(TypeError, match=r"checkpoint payload\['config'\] is a omegaconf"):
         save_checkpoint(tmp_path / "c.pt", {"config": OmegaConf.structured(RunConfig())}, "fp")
+
+
+def test_a_saved_replay_buffer_holds_no_uninitialised_bytes():
+    """train.save_buffer=true: the slots never written (torch.empty's leftovers) are zero in the
+    checkpoint, so identical runs write identical last.pt files."""
+    import io
+
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from crowdrl.training.factories import buffer_state_dict
+
+    saved = []
+    for garbage in (7.0, -3.0):  # what uninitialised memory happened to hold in two identical runs
+        buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=2)
+        buffer.extend(TensorDict({"a": torch.ones(3, 2), "c": torch.ones(3, dtype=torch.int64)}, [3]))
+        stored = buffer.state_dict()["_storage"]["_storage"]
+        stored["a"][3:], stored["c"][3:] = garbage, int(garbage)
+        buf = io.BytesIO()
+        torch.save(buffer_state_dict(buffer), buf)
+        saved.append(buf.getvalue())
+        state = buffer_state_dict(buffer)["_storage"]["_storage"]
+        assert state["a"][3:].eq(0).all() and state["c"][3:].eq(0).all() and state["a"][:3].eq(1).all()
+    assert saved[0] == saved[1]
+
+
+def test_a_text_file_given_as_a_checkpoint_is_named_not_a_torch_file(tmp_path):
+    """Not a bare "105" (the unpickler's KeyError) at the end of the message."""
+    path = tmp_path / "notes.pt"
+    path.write_text("hello\nworld\n")
+    with pytest.raises(CheckpointError, match=r"notes\.pt is not a crowdrl checkpoint \(not a torch file"):
+        load_checkpoint(path)
+
+
+def test_a_fingerprint_mismatch_names_each_key_that_differs_and_both_values(tmp_path):
+    """config.yaml edited after the run: the refusal names env.num_humans and seed, with both values."""
+    stored = to_dict(RunConfig())
+    path = tmp_path / "last.pt"
+    save_checkpoint(path, {"config": stored}, config_fingerprint(stored))
+    edited = to_dict(RunConfig(seed=3))
+    edited["env"]["num_humans"] = 7
+    edited["train"]["total_frames"] = 5  # a budget: not part of the fingerprint, not named
+    with pytest.raises(CheckpointError) as err:
+        load_checkpoint(path, config_fingerprint(edited), config=edited)
+    message = str(err.value)
+    assert "env.num_humans: 7 here, 10 in the checkpoint" in message and "seed: 3 here, 0 in the checkpoint" in message
+    assert "total_frames" not in message

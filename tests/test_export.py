@@ -202,7 +202,7 @@ class _Payload:
         return os.system, (f"touch '{self.marker}'",)
 
 
-@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format", "unread key"])
+@pytest.mark.parametrize("bad", ["missing", "corrupt", "unsafe", "out", "format", "unread key", "check", "exists"])
 def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     folder, _ = exported
     args, words = [f"checkpoint={folder}", f"out={tmp_path / 'p.onnx'}"], []
@@ -217,6 +217,12 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     elif bad == "out":
         (tmp_path / "file").write_text("")
         args[1], words = f"out={tmp_path / 'file' / 'p.onnx'}", ["out: cannot write", "is a file, not a folder"]
+    elif bad == "check":  # not a bool: was taken as true
+        args.append("check=maybe")
+        words = ["check: got 'maybe'; true or false"]
+    elif bad == "exists":  # was overwritten silently
+        (tmp_path / "p.onnx").write_text("mine")
+        words = ["out:", "p.onnx exists; pass overwrite=true"]
     elif bad == "format":
         args.append("format=tflite")
         words = ["format: got 'tflite'; allowed: onnx"]
@@ -227,7 +233,11 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
-    assert not (tmp_path / "p.onnx").exists() and not (tmp_path / "marker").exists()
+    if bad == "exists":
+        assert (tmp_path / "p.onnx").read_text() == "mine"
+    else:
+        assert not (tmp_path / "p.onnx").exists()
+    assert not (tmp_path / "marker").exists()
 
 
 def test_export_traces_the_compiled_attention_kernel_as_plain_torch(exported, tmp_path):
@@ -271,3 +281,26 @@ def test_lstm_rls_order_of_humans_with_ties_is_the_same_in_onnx():
     got = onnxruntime.InferenceSession(buf.getvalue(), providers=["CPUExecutionProvider"]).run(
         None, {"humans": humans.numpy(), "mask": mask.numpy()})[0]
     np.testing.assert_array_equal(got, sort_far_to_near(humans, mask)[0].numpy())
+
+
+@pytest.mark.parametrize("value", ["0", "abc", "-0.25", "nan", None])
+def test_the_example_refuses_bad_metadata_or_a_non_model_in_one_line(exported, tmp_path, capsys, value):
+    """A time step of "0" or "abc" in the model's metadata (or a text file given as the model): exit 2
+    naming the field (or the model), not a ZeroDivisionError or onnxruntime's traceback."""
+    import onnx
+
+    path = tmp_path / "p.onnx"
+    if value is None:
+        path.write_text("not a model\n")
+    else:
+        model = onnx.load(str(exported[1]))
+        (entry,) = [m for m in model.metadata_props if m.key == "crowdrl.time_step"]
+        entry.value = value
+        onnx.save(model, str(path))
+    with pytest.raises(SystemExit) as stop:
+        load_example().main([str(path)])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2
+    expected = ("not an ONNX model" if value is None
+                else f"crowdrl.time_step: must be a finite number of seconds > 0, got {value!r}")
+    assert expected in err and "Traceback" not in err, err

@@ -197,3 +197,16 @@ def test_fresh_script_gym_make_leaves_torchrl_out_and_torchrl_gym_env_runs(tmp_p
     )
     lines = [ln for ln in out.splitlines() if ln.startswith(("torchrl imported:", "rollout:"))]
     assert lines == ["torchrl imported: False None", "rollout: (3, 5) torch.int64 (3, 5, 10, 5)"], out
+
+
+def test_step_after_the_episode_ended_raises_until_reset():
+    """Gymnasium's contract: no step() after terminated/truncated, until reset()."""
+    env = gym.make(IDS[0], robot_kinematics="holonomic", num_humans=1)
+    env.reset(seed=0)
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, _, terminated, truncated, _ = env.step(np.zeros(2, np.float32))  # standing still: a timeout
+    with pytest.raises(RuntimeError, match=r"has (terminated|truncated): call reset\(\) before step\(\)"):
+        env.step(np.zeros(2, np.float32))
+    env.reset()
+    env.step(np.zeros(2, np.float32))  # a new episode steps again

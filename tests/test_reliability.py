@@ -308,3 +308,35 @@ def test_logger_wandb_mirrors_the_scalars_into_an_offline_run_whose_id_the_check
     wandb_id = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["wandb_id"]
     (record,) = run.glob(f"wandb/offline-run-*-{wandb_id}/run-{wandb_id}.wandb")
     assert b"val/success_rate" in record.read_bytes() and b"train/success_rate" in record.read_bytes()
+
+
+# ----------------------------------------------------------------------------- issue 40: clear failures, nothing left
+
+
+def test_an_empty_resume_is_refused_naming_resume():
+    """``resume=$RUN`` with RUN unset must not start a brand-new run."""
+    run = smoke()
+    run.resume = ""
+    with pytest.raises(ConfigError, match="^resume: is empty"):
+        validate(run)
+
+
+def test_a_writer_killed_mid_write_leaves_a_temporary_that_the_next_write_removes(tmp_path):
+    """SIGKILL inside an atomic write leaves ``.last.pt.<pid>.<id>.tmp``; the next atomic write of
+    ``last.pt`` removes it (its process is gone), and leaves a live process's temporaries alone."""
+    from crowdrl.files import atomic_write_bytes
+
+    target = tmp_path / "last.pt"
+    code = ("import os, signal, sys\nfrom crowdrl.files import atomic_write_with\n"
+            "def write(tmp):\n    tmp.write_bytes(b'x' * 4096)\n    os.kill(os.getpid(), signal.SIGKILL)\n"
+            "atomic_write_with(sys.argv[1], write)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(target)], capture_output=True, timeout=60)
+    assert proc.returncode == -9
+    (left,) = tmp_path.glob(".last.pt.*.tmp")
+    live = tmp_path / f".last.pt.{os.getppid()}.0123456789ab.tmp"  # a running process's write in progress
+    live.write_bytes(b"y")
+    other = tmp_path / ".best.pt.999999999.0123456789ab.tmp"  # another target's: not this write's business
+    other.write_bytes(b"z")
+    atomic_write_bytes(target, b"new")
+    assert target.read_bytes() == b"new" and not left.exists()
+    assert live.exists() and other.exists()

@@ -117,6 +117,40 @@ def test_a_clone_rebuilds_the_table_from_the_committed_records(reproduced, tmp_p
     assert (clone / "curves.png").exists() and (clone / "side_by_side.png").exists()
 
 
+@pytest.mark.parametrize("field, value", [("success_rate", 7.5), ("collision_rate", "high"), ("episodes", None)])
+def test_records_read_back_are_checked_naming_the_file_and_field(tmp_path, field, value):
+    from crowdrl.evaluation.report import RecordError, read_eval_record, read_summary
+
+    record = {"success_rate": 0.5, "collision_rate": 0.25, "timeout_rate": 0.25, "navigation_time": 10.0,
+              "average_return": 0.1, "discomfort_frequency": 0.0, "min_separation": None, "episodes": 4}
+    path = tmp_path / "eval.json"
+    path.write_text(json.dumps({**record, field: value}))
+    with pytest.raises(RecordError, match=f"^{path}: {field}: must be"):
+        read_eval_record(path)
+    metrics = {**record, "discomfort_min_separation": record.pop("min_separation"), field: value}
+    (tmp_path / "summary.json").write_text(json.dumps({"test": {"metrics": metrics}, "wall_s": 1.0}))
+    with pytest.raises(RecordError, match=f"summary.json: test.metrics: {field}: must be"):
+        read_summary(tmp_path / "summary.json")
+    path.write_text("{not json")
+    with pytest.raises(RecordError, match="eval.json: not valid JSON"):
+        read_eval_record(path)
+
+
+def test_reproduce_refuses_a_record_out_of_range_in_one_line(reproduced, tmp_path):
+    """An eval.json with success_rate 7.5 became 7.500 in table.md; a string, a traceback."""
+    import shutil
+
+    clone = tmp_path / "results"
+    shutil.copytree(reproduced, clone, ignore=shutil.ignore_patterns("checkpoints"))
+    bad = sorted(clone.glob("runs/*/eval-*/eval.json"))[0]
+    bad.write_text(json.dumps({**json.loads(bad.read_text()), "success_rate": 7.5}))
+    table = (clone / "table.md").read_bytes()
+    proc = run([*REPRODUCE, *TINY, f"out={clone}"])
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert f"{bad}: success_rate: must be a number in [0, 1], got 7.5" in proc.stderr, proc.stderr[-2000:]
+    assert (clone / "table.md").read_bytes() == table
+
+
 def test_reproduce_resumes_killed_runs(reproduced):
     """The runs killed mid-training finished from their checkpoints: the smoke budget exactly, no
     validation logged twice, status completed."""

@@ -307,3 +307,21 @@ def test_the_hash_gives_the_same_bits_on_tensors_arrays_and_python_ints():
     assert k.tolist() == [2152384760656441742, 2210934865073242055, 6789695922308809281]
     assert rng.fold(k, 3, torch.tensor([7, 8, 9])).tolist() == [720644922299940120, 1023220482165265465,
                                                                2335978299231985139]
+
+
+@pytest.mark.parametrize("big", [1e18, 1e20, 3e38])
+def test_a_huge_finite_holonomic_velocity_is_capped_to_v_pref_in_its_direction(big):
+    """[1e20, 1e20]: the float32 norm overflows; the robot must still move at v_pref towards +x+y."""
+    from crowdrl.envs import CrowdNavEnv
+    from crowdrl.sim.kinematics import clip_speed
+
+    capped = clip_speed(torch.tensor([[big, big], [-big, 0.0], [0.6, 0.8], [0.3, 0.4]]), 1.0)
+    assert torch.allclose(capped, torch.tensor([[0.5 ** 0.5, 0.5 ** 0.5], [-1.0, 0.0], [0.6, 0.8], [0.3, 0.4]]))
+    env = CrowdNavEnv("circle", num_envs=1, num_humans=1, seed=0, robot_kinematics="holonomic")
+    td = env.reset()
+    before = td["robot"][0, :2].clone()
+    td["action"] = torch.tensor([[big, big]])
+    after = env.step(td)["next", "robot"][0, :2]
+    moved = after - before
+    v_pref, dt = env.config.robot_v_pref, env.config.time_step
+    assert torch.allclose(moved, torch.full((2,), v_pref * dt * 0.5 ** 0.5), atol=1e-5), moved

@@ -1,5 +1,9 @@
 """Atomic file writes (readers see the old file or the new one, never half of one) and strict JSON.
 
+A write goes through a temporary ``.<name>.<pid>.<id>.tmp`` beside its target, removed on any error;
+one left by a process that was killed mid-write (SIGKILL, power loss) is removed by the next atomic
+write of the same target once that process is gone (:func:`remove_stale_temporaries`).
+
 Files written here get the mode a plain ``open(path, "w")`` would give them: an existing file keeps
 its mode, a new one gets ``0o666`` less the umask (usually ``0644``), not ``mkstemp``'s ``0600``.
 JSON is strict (RFC 8259): an undefined metric (NaN, ±inf) is written as ``null``, never as a bare
@@ -8,9 +12,11 @@ JSON is strict (RFC 8259): an undefined metric (NaN, ±inf) is written as ``null
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
+import re
 import uuid
 from pathlib import Path
 from typing import Any, Callable
@@ -39,6 +45,39 @@ def _temp_beside(path: Path, suffix: str = "") -> Path:
     return path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{suffix}"
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: Path | str) -> list[Path]:
+    """Remove the temporaries of atomic writes of ``path`` (``.<name>.<pid>.<id>.tmp*`` beside it)
+    left by processes that no longer run (a writer killed mid-write); return what was removed.
+    Those of a live process, this one included, are left alone: it may be writing them now."""
+    path = Path(path)
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[0-9a-f]{{12}}\.tmp")
+    removed = []
+    try:
+        candidates = list(path.parent.glob(f".{glob.escape(path.name)}.*.tmp*"))
+    except OSError:
+        return removed
+    for tmp in candidates:
+        found = pattern.match(tmp.name)
+        if found is None or int(found.group(1)) == os.getpid() or _pid_alive(int(found.group(1))):
+            continue
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
 def atomic_write_with(path: Path | str, write: Callable[[Path], Any], *, suffix: str = "") -> Path:
     """Write ``path`` through ``write(tmp)``, a function that creates the file ``tmp`` (a figure's
     ``savefig``, a CSV writer), then rename ``tmp`` over ``path``: readers see the old file or the
@@ -53,6 +92,7 @@ def atomic_write_with(path: Path | str, write: Callable[[Path], Any], *, suffix:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
     tmp = _temp_beside(path, suffix)
     try:
         write(tmp)
@@ -69,6 +109,7 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> None:
     (flushed to disk before the rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
     tmp = _temp_beside(path)
     try:
         mode = os.stat(path).st_mode & 0o7777  # an existing file keeps its mode, as open(path, "w") would
@@ -95,4 +136,5 @@ def atomic_write_json(path: Path | str, obj: Any, *, default: Callable[[Any], An
     atomic_write_bytes(path, dumps_json(obj, default=default).encode())
 
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "dumps_json", "finite_or_null"]
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "dumps_json", "finite_or_null",
+           "remove_stale_temporaries"]

@@ -92,6 +92,7 @@ class CrowdNavGymEnv(gym.Env):
         self._next_episode = 0
         self._episode = 0
         self._state = None
+        self._ended: str | None = None  # "terminated" / "truncated": the episode is over until reset()
 
     def _obs(self) -> dict[str, np.ndarray]:
         robot, humans = observe(self.config, self._state)
@@ -131,6 +132,7 @@ class CrowdNavGymEnv(gym.Env):
         key = rng.episode_keys(self.split, self._stream_seed, torch.tensor([episode]))
         self._state = initial_states(self.config, key)
         self._episode = episode
+        self._ended = None
         return self._obs(), self._info()
 
     def _action_tensor(self, action: Any) -> torch.Tensor:
@@ -152,11 +154,17 @@ class CrowdNavGymEnv(gym.Env):
     def step(self, action):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended is not None:  # Gymnasium's contract: an ended episode is not stepped on
+            raise RuntimeError(f"episode {self._episode} has {self._ended}: call reset() before step() "
+                               f"(step() after the end of an episode is not defined)")
         velocity, heading = decode_action(self.config.robot_kinematics, self._action_tensor(action),
                                           self._state.robot_heading, self._actions, self.config.robot_v_pref)
         self._state, res = step(self.config, self._state, velocity, heading)
         info = self._info(int(res.event[0]), float(res.min_separation[0]), int(res.discomfort_count[0]))
-        return self._obs(), float(res.reward[0]), bool(res.terminated[0]), bool(res.truncated[0]), info
+        terminated, truncated = bool(res.terminated[0]), bool(res.truncated[0])
+        if terminated or truncated:
+            self._ended = "terminated" if terminated else "truncated"
+        return self._obs(), float(res.reward[0]), terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
         """The current state as an ``HxWx3`` uint8 frame (``render_mode="rgb_array"``), else ``None``."""

@@ -61,6 +61,19 @@ def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None)
             "humans_mask": mask[None]}
 
 
+def time_step_of(meta: dict[str, str]) -> float:
+    """The model's ``crowdrl.time_step`` metadata (seconds per step; 0.25 when absent); ``ValueError``
+    naming the field unless it is a finite number > 0."""
+    text = meta.get("crowdrl.time_step", "0.25")
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"metadata crowdrl.time_step: must be a finite number of seconds > 0, got {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> dict:
     import onnxruntime
 
@@ -70,8 +83,16 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
     if not os.path.isfile(args.model):
         p.error(f"model: no file at {args.model} (write one with crowdrl-export)")
-    session = onnxruntime.InferenceSession(args.model, providers=["CPUExecutionProvider"])
+    try:
+        session = onnxruntime.InferenceSession(args.model, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime's errors: not a model, or a damaged one
+        first = next((line for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        p.error(f"model: {args.model} is not an ONNX model onnxruntime can load ({first[:200]})")
     meta = session.get_modelmeta().custom_metadata_map
+    try:
+        time_step = time_step_of(meta)
+    except ValueError as exc:
+        p.error(f"model: {args.model}: {exc} (a model written by crowdrl-export holds the env's time step)")
     shapes = {i.name: i.shape for i in session.get_inputs()}
     if "humans_rc" not in shapes:
         p.error(f"model: {args.model} takes {sorted(shapes)} (a policy trained among obstacles reads entity tokens); "
@@ -89,7 +110,7 @@ def main(argv: list[str] | None = None) -> dict:
     speed, rotation = (float(x) for x in command[0])
     heading = robot[8] + rotation  # the unicycle turns first, then drives straight for one step
     result = {"action": a, "q": float(q[0, a]), "speed": speed, "rotation": rotation,
-              "angular_rate": rotation / float(meta.get("crowdrl.time_step", "0.25")),
+              "angular_rate": rotation / time_step,
               "velocity_world": [speed * math.cos(heading), speed * math.sin(heading)],
               "planning": meta.get("crowdrl.planning", "unknown")}
     if args.json:

@@ -10,13 +10,30 @@ by ``experiments/<name>.py``:
 
 The configs come from the package (:func:`crowdrl.resources.config_dir`), never from the current
 directory; what the commands write (``runs/``, ``multirun/``, ``results/``) is relative to it.
+
+Every command fails the same way (:func:`one_line_errors` around its ``main``, :func:`hydra_command`
+for the Hydra ones): refused input, a
+Hydra or OmegaConf error (an unknown option, a value of the wrong type, a missing config), a full
+disk or a read-only or forbidden folder end it with one line ``<program>: <message>`` on stderr and
+exit status 2; Ctrl-C / SIGTERM with 130. Only a bug shows a traceback (exit 1).
 """
 
 from __future__ import annotations
 
+import errno
+import functools
+import os
 import sys
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, Callable, NoReturn, TypeVar
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+# the OS's errors a user fixes (space, a writable folder, permissions), not crowdrl
+FOLDER_ERRNOS = {errno.ENOSPC: "free some space or write elsewhere", errno.EDQUOT: "free some space or write elsewhere",
+                 errno.EROFS: "the file system is read-only: write elsewhere",
+                 errno.EACCES: "no permission: write elsewhere or change the permissions",
+                 errno.EPERM: "not permitted: write elsewhere or change the permissions"}
 
 
 def command(module: str) -> str:
@@ -40,3 +57,100 @@ def exit_with_error(module: str, message: str, code: int = 2) -> NoReturn:
     """Print ``<program>: <message>`` on stderr and exit with ``code`` (2: refused input, 1: a failure)."""
     print(f"{program(module)}: {message}", file=sys.stderr)
     raise SystemExit(code)
+
+
+def folder_error_line(exc: OSError) -> str | None:
+    """``<file>: <strerror> (<ERRNO>); <what to do>`` for a full disk, a read-only or forbidden file
+    (:data:`FOLDER_ERRNOS`); ``None`` for another ``OSError``."""
+    if exc.errno not in FOLDER_ERRNOS:
+        return None
+    where = f"{exc.filename}: " if exc.filename else ""
+    return f"{where}{exc.strerror or os.strerror(exc.errno)} ({errno.errorcode[exc.errno]}); {FOLDER_ERRNOS[exc.errno]}"
+
+
+def config_error_line(exc: BaseException) -> str | None:
+    """One line for a Hydra or OmegaConf error (``seed: Value 'abc' of type 'str' could not be converted
+    to Integer``; ``In 'evaluate': Could not find 'env/mars'; available options in 'env': circle, ...``),
+    the key first when the error names one; ``None`` for any other exception."""
+    try:
+        from hydra.errors import HydraException
+        from omegaconf.errors import OmegaConfBaseException
+    except ImportError:  # pragma: no cover - both come with crowdrl
+        return None
+    if not isinstance(exc, (HydraException, OmegaConfBaseException)):
+        return None
+    parts: list[str] = []
+    key = None
+    for err in (exc, exc.__cause__):
+        if err is None:
+            continue
+        key = key or getattr(err, "full_key", None) or None
+        parts += _message_parts(str(err))
+    text = "; ".join(dict.fromkeys(p for p in parts if p)) or type(exc).__name__
+    return text if not key or text.startswith(f"{key}:") else f"{key}: {text}"
+
+
+def _message_parts(text: str) -> list[str]:
+    """The lines of a Hydra/OmegaConf message worth a user's reading, an options list on one line."""
+    parts: list[str] = []
+    options: list[str] | None = None
+    for raw in text.splitlines():
+        line = raw.strip()
+        if line.startswith("Config search path") or line.startswith("Set the environment variable HYDRA_FULL_ERROR"):
+            break
+        if not line or line.startswith(("full_key:", "object_type=", "reference_type=")):
+            continue
+        if line.startswith("Available options in"):
+            options = []
+            parts.append(line[0].lower() + line[1:] + " {options}")
+        elif options is not None and raw.startswith("\t"):
+            options.append(line)
+        else:
+            parts.append(line)
+    return [p.replace("{options}", ", ".join(options or [])) if p.endswith("{options}") else p for p in parts]
+
+
+def one_line_errors(module: str) -> Callable[[F], F]:
+    """Decorate a command's ``main`` (outside ``@hydra.main``) so that Hydra's and OmegaConf's errors and
+    :data:`FOLDER_ERRNOS` end it with one line and exit 2 (:func:`exit_with_error`), and Ctrl-C with
+    130. Hydra is told to raise (``HYDRA_FULL_ERROR=1`` while ``main`` runs) instead of printing its
+    own report and exiting 1; anything else propagates as it is."""
+    def decorate(main: F) -> F:
+        @functools.wraps(main)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            previous = os.environ.get("HYDRA_FULL_ERROR")
+            os.environ["HYDRA_FULL_ERROR"] = "1"
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                exit_with_error(module, "interrupted", code=130)
+            except Exception as exc:
+                # Hydra's MissingConfigException is an OSError too
+                line = (folder_error_line(exc) if isinstance(exc, OSError) else None) or config_error_line(exc)
+                if line is None:
+                    raise
+                exit_with_error(module, line)
+            finally:
+                if previous is None:
+                    os.environ.pop("HYDRA_FULL_ERROR", None)
+                else:
+                    os.environ["HYDRA_FULL_ERROR"] = previous
+
+        return run  # type: ignore[return-value]
+
+    return decorate
+
+
+def hydra_command(module: str, config_name: str) -> Callable[[F], F]:
+    """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
+    :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
+    job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command."""
+    def decorate(task: F) -> F:
+        import hydra
+
+        from crowdrl.resources import config_dir
+
+        hydra_main = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")
+        return one_line_errors(module)(hydra_main(one_line_errors(module)(task)))
+
+    return decorate

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from crowdrl.cli import exit_with_error
+from crowdrl.cli import exit_with_error, one_line_errors
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -63,6 +63,7 @@ def format_comparison(agent: dict, orca: dict, label: str) -> str:
     return "\n".join(lines)
 
 
+@one_line_errors("demo")
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("overrides", nargs="*", metavar="key=value",

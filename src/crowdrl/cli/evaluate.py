@@ -17,11 +17,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -59,8 +58,20 @@ def check_keys(c: dict, overrides: list[str]) -> None:
                           f"they see the robot eval.robot_visible)")
 
 
-@hydra.main(config_path=CONF_DIR, config_name="evaluate", version_base="1.3")
+@hydra_command("evaluate", "evaluate")
 def main(cfg: DictConfig) -> dict:
+    out = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        return run_evaluation(out, cfg)
+    except (KeyboardInterrupt, OSError):  # stopped, or a full / read-only disk: one_line_errors reports it
+        from crowdrl.training.run_folder import discard_new_folders
+
+        discard_new_folders(out)  # the eval folder Hydra made, only while still empty (atomic writes leave no part)
+        raise
+
+
+def run_evaluation(out: Path, cfg: DictConfig) -> dict:
+    """Evaluate what ``cfg`` names into the folder ``out`` (Hydra's run folder); the record."""
     import torch
 
     from crowdrl.evaluation.report import markdown_table, write_records
@@ -68,7 +79,6 @@ def main(cfg: DictConfig) -> dict:
     from crowdrl.training.config import check_device, check_threads
     from crowdrl.training.pipeline import evaluate_spec
 
-    out = Path(HydraConfig.get().runtime.output_dir)
     c = OmegaConf.to_container(cfg, resolve=True)
     try:
         check_keys(c, list(HydraConfig.get().overrides.task))

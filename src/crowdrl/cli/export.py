@@ -8,8 +8,9 @@ needs the ``export`` extra: onnx, onnxruntime).
 Inputs, outputs and metadata: ``docs/export.md`` and :mod:`crowdrl.export`. A checkpoint trained
 with online planning exports its Q policy only (it says so, here and in the model's metadata).
 ``crowdrl/onnx_example.py`` (installed with the package; ``experiments/onnx_example.py`` in a checkout)
-runs the model with numpy and onnxruntime alone. A bad argument
-(checkpoint, out, format, opset) exits with code 2 and a message naming it.
+runs the model with numpy and onnxruntime alone. An existing ``out`` file is replaced only with
+``overwrite=true``. A bad argument (checkpoint, out, format, opset, check, overwrite) exits with
+code 2 and a message naming it.
 """
 
 from __future__ import annotations
@@ -18,10 +19,9 @@ import os
 from pathlib import Path
 from typing import NoReturn
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir, onnx_example
 
 # the check runs the torch policy a few times: compiling SG-D3QN's pairwise kernel for that would
@@ -35,7 +35,7 @@ def fail(message: str) -> NoReturn:
     exit_with_error("export", message)
 
 
-@hydra.main(config_path=CONF_DIR, config_name="export", version_base="1.3")
+@hydra_command("export", "export")
 def main(cfg: DictConfig) -> dict:
     c = OmegaConf.to_container(cfg, resolve=True)
     from crowdrl.export import FORMATS
@@ -55,12 +55,17 @@ def main(cfg: DictConfig) -> dict:
         fail("out: required (the .onnx file to write), e.g. out=policy.onnx")
     if isinstance(c["opset"], bool) or not isinstance(c["opset"], int) or not 14 <= c["opset"] <= 20:
         fail(f"opset: got {c['opset']!r}; an integer in 14..20")
+    for key in ("check", "overwrite"):
+        if not isinstance(c[key], bool):
+            fail(f"{key}: got {c[key]!r}; true or false")
+    if Path(c["out"]).exists() and not c["overwrite"]:
+        fail(f"out: {c['out']} exists; pass overwrite=true to replace it, or choose another out=")
 
     from crowdrl.export import export_onnx
     from crowdrl.training import CheckpointError
 
     try:
-        info = export_onnx(c["checkpoint"], c["out"], opset=c["opset"], check=bool(c["check"]))
+        info = export_onnx(c["checkpoint"], c["out"], opset=c["opset"], check=c["check"])
     except CheckpointError as exc:
         fail(f"checkpoint: {exc}")
     except ValueError as exc:  # export_onnx names the argument (out)

@@ -37,10 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import exit_with_error
+from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
 from crowdrl.tables import interval_cell, markdown_table
 
@@ -248,7 +247,9 @@ def eval_path(run_dir: Path, scenario: str) -> Path:
 
 
 def has_eval(path: Path, episodes: int) -> bool:
-    return path.exists() and json.loads(path.read_text()).get("episodes") == episodes
+    from crowdrl.evaluation.report import read_eval_record
+
+    return path.exists() and read_eval_record(path)["episodes"] == episodes
 
 
 def _run(cmd: list[str], log: Path) -> None:
@@ -280,14 +281,14 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     """The training run already tested its best checkpoint on its own scenario (test seed 0): copy
     that record instead of evaluating the same cases again. False when it does not match."""
     from crowdrl.evaluation import EpisodeMetrics
-    from crowdrl.evaluation.report import eval_record, write_records
+    from crowdrl.evaluation.report import eval_record, read_summary, write_records
     from crowdrl.training.pipeline import TEST_SEED
 
     summary = run_dir / "summary.json"
     config = run_dir / "config.yaml"
     if not (summary.exists() and config.exists()):
         return False
-    test = json.loads(summary.read_text()).get("test", {})
+    test = read_summary(summary)["test"]
     run_cfg = OmegaConf.load(config)
     if test.get("test_seed") != TEST_SEED or run_cfg.env.scenario != scenario or test["metrics"]["episodes"] != episodes:
         return False
@@ -337,12 +338,14 @@ def launch_slurm(plan: Plan, pending: list[tuple[Method, int]]) -> None:
 
 def collect(plan: Plan) -> dict[str, Any]:
     """Every eval record: ``{method: {scenario: [record per seed]}}`` (ORCA: one record)."""
+    from crowdrl.evaluation.report import read_eval_record
+
     records: dict[str, dict[str, list[dict]]] = {}
     for method in plan.methods:
         for scenario in plan.scenarios:
             records.setdefault(method.name, {})[scenario] = [
-                json.loads(eval_path(plan.run_dir(method, s), scenario).read_text()) for s in plan.seeds]
-    records["orca"] = {sc: [json.loads((plan.out / "orca" / f"eval-{sc}" / "eval.json").read_text())]
+                read_eval_record(eval_path(plan.run_dir(method, s), scenario)) for s in plan.seeds]
+    records["orca"] = {sc: [read_eval_record(plan.out / "orca" / f"eval-{sc}" / "eval.json")]
                        for sc in plan.scenarios}
     return records
 
@@ -388,6 +391,7 @@ TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg 
 
 
 def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
+    from crowdrl.evaluation.report import read_summary
     from crowdrl.sim.config import OPEN_SCENARIOS
 
     seeds = ", ".join(map(str, plan.seeds))
@@ -406,7 +410,7 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
              "pair of seeds "
              "[95 % CI]. ORCA is deterministic: one evaluation.",
              ""]
-    run_minutes = [json.loads((plan.run_dir(m, s) / "summary.json").read_text())["wall_s"] / 60
+    run_minutes = [read_summary(plan.run_dir(m, s) / "summary.json")["wall_s"] / 60
                    for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
     if run_minutes:
         lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`): {min(run_minutes):.1f}–"
@@ -538,12 +542,14 @@ if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 
 
-@hydra.main(config_path=CONF_DIR, config_name="reproduce", version_base="1.3")
+@hydra_command("reproduce", "reproduce")
 def main(cfg: DictConfig) -> None:
+    from crowdrl.evaluation.report import RecordError
+
     try:
         plan = make_plan(OmegaConf.to_container(cfg, resolve=True))
         result = reproduce(plan)
-    except (PlanError, RuntimeError) as exc:
+    except (PlanError, RuntimeError, RecordError) as exc:  # RecordError: a record read back names file and field
         from crowdrl.training.run_folder import discard_new_folders
 
         discard_new_folders(cfg.out)  # the out= folder Hydra made for this call, and only while empty

@@ -13,11 +13,10 @@ import math
 import os
 from pathlib import Path
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.cli import command, exit_with_error
+from crowdrl.cli import command, exit_with_error, folder_error_line, hydra_command
 from crowdrl.resources import config_dir
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -46,7 +45,7 @@ def _register_schema() -> None:
 _register_schema()
 
 
-@hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
+@hydra_command("train", "config")
 def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
     from crowdrl.training.pipeline import completed_summary
@@ -76,6 +75,14 @@ def main(cfg: DictConfig) -> float:
         exit_with_error("train", f"training failed: {exc} (run folder: {run_dir.resolve()})", code=1)
     except KeyboardInterrupt as exc:  # SIGTERM/SIGINT: checkpointed, status "interrupted"
         exit_with_error("train", f"interrupted ({exc}); resume with: {command('train')} resume={run_dir}", code=130)
+    except OSError as exc:  # a full disk, a read-only or forbidden folder: the last complete checkpoint stays
+        line = folder_error_line(exc)
+        if line is None:
+            raise
+        if not run.resume:
+            discard_new_folders(out_dir)
+        exit_with_error("train", f"{line} (run folder {run_dir}; its checkpoints/last.pt, if any, is the last complete "
+                                 f"one: resume with {command('train')} resume={run_dir})")
     m = summary["test"]["metrics"]
     if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
         print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
@@ -113,8 +120,15 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
         raise ConfigError(f"resume={run_dir}: no checkpoints/last.pt there")
     if not (run_dir / "config.yaml").is_file():
         raise ConfigError(f"resume={run_dir}: no config.yaml there (not a run folder of train.py)")
-    saved = OmegaConf.load(run_dir / "config.yaml")
-    conflicts = resume_conflicts(cfg, saved, overrides)
+    try:
+        saved = OmegaConf.load(run_dir / "config.yaml")
+        conflicts = resume_conflicts(cfg, saved, overrides)
+    except Exception as exc:  # YAML that does not parse, a key or _target_ the schema lacks, a group of the wrong type
+        from crowdrl.cli import config_error_line
+
+        detail = config_error_line(exc) or " ".join(str(exc).split())[:300]
+        raise ConfigError(f"resume={run_dir}: its config.yaml is not a run config train.py can read ({detail}); "
+                          f"restore the file train.py wrote, or start a new run") from None
     if conflicts:
         raise ConfigError(f"resume={run_dir}: a resumed run keeps its own config.yaml; refused override(s): "
                           + "; ".join(conflicts))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 from pathlib import Path
 from typing import Any, Iterable
@@ -103,3 +104,72 @@ def write_records(folder: Path | str, records: list[dict[str, Any]], stem: str =
     writer.writerows(records)
     atomic_write_bytes(csv_path, buf.getvalue().encode())
     return json_path, csv_path
+
+
+class RecordError(ValueError):
+    """A record read back (``eval.json``, ``summary.json``) is not what crowdrl writes; the message
+    names the file and the field."""
+
+
+RATE_FIELDS = ("success_rate", "collision_rate", "timeout_rate", "discomfort_frequency")
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_metrics(metrics: Any, where: str, *, separation_key: str = "min_separation") -> dict[str, Any]:
+    """``metrics`` (an ``eval.json`` record, or ``summary.json``'s ``test.metrics`` with
+    ``separation_key="discomfort_min_separation"``) checked field by field; :class:`RecordError`
+    naming ``where`` and the field otherwise: rates in [0, 1], ``episodes`` an integer >= 1, the
+    navigation time and min separation finite and >= 0 or null, the average return finite or null."""
+    if not isinstance(metrics, dict):
+        raise RecordError(f"{where}: expected a JSON object of metrics, got {type(metrics).__name__}")
+
+    def need(key: str, ok: bool, what: str) -> None:
+        if not ok:
+            got = metrics.get(key, "(missing)")
+            raise RecordError(f"{where}: {key}: must be {what}, got {got!r}")
+
+    episodes = metrics.get("episodes")
+    need("episodes", isinstance(episodes, int) and not isinstance(episodes, bool) and episodes >= 1, "an integer >= 1")
+    for key in RATE_FIELDS:
+        need(key, _number(metrics.get(key)) and 0 <= metrics[key] <= 1, "a number in [0, 1]")
+    for key in ("navigation_time", separation_key):
+        value = metrics.get(key, "(missing)")
+        need(key, value is None or (_number(value) and value >= 0), "a finite number >= 0 or null")
+    value = metrics.get("average_return", "(missing)")
+    need("average_return", value is None or _number(value), "a finite number or null")
+    return metrics
+
+
+def read_json_record(path: Path | str) -> dict[str, Any]:
+    """A JSON object read from ``path``; :class:`RecordError` naming the file for anything else."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecordError(f"{path}: missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RecordError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise RecordError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def read_eval_record(path: Path | str) -> dict[str, Any]:
+    """An ``eval.json`` record (:func:`eval_record`) read back and checked (:func:`check_metrics`)."""
+    return check_metrics(read_json_record(path), str(path))
+
+
+def read_summary(path: Path | str) -> dict[str, Any]:
+    """A run's ``summary.json`` read back: its ``test.metrics`` checked (:func:`check_metrics`) and
+    ``wall_s`` a finite number >= 0 when present; :class:`RecordError` naming the file and field."""
+    data = read_json_record(path)
+    test = data.get("test")
+    if not isinstance(test, dict):
+        raise RecordError(f"{path}: test: expected a JSON object, got {test!r}")
+    check_metrics(test.get("metrics"), f"{path}: test.metrics", separation_key="discomfort_min_separation")
+    if "wall_s" in data and not (_number(data["wall_s"]) and data["wall_s"] >= 0):
+        raise RecordError(f"{path}: wall_s: must be a finite number >= 0, got {data['wall_s']!r}")
+    return data

@@ -65,6 +65,13 @@ def episode_records(rollout: TensorDictBase, max_steps: int) -> dict[str, Tensor
     }
 
 
+def kept_bytes(num_episodes: int, max_steps: int) -> int:
+    """Peak bytes of the per-episode records :func:`evaluate` keeps for its metrics: each episode's
+    rewards (``max_steps`` float32, zero-padded), copied once when joined and twice in float64 when
+    the returns are computed, and its five counters."""
+    return num_episodes * (max_steps * (4 + 4 + 8 + 8) + 5 * 8)
+
+
 @torch.no_grad()
 def evaluate(
     env: EnvBase,

@@ -68,9 +68,19 @@ def check_velocities(action: Tensor, batch_size: int) -> Tensor:
 
 
 def clip_speed(velocity: Tensor, v_pref: float) -> Tensor:
-    """Scale each ``[..., 2]`` velocity faster than ``v_pref`` down to ``v_pref`` (others unchanged)."""
+    """Scale each ``[..., 2]`` velocity faster than ``v_pref`` down to ``v_pref`` in its direction
+    (others unchanged), a finite one whose norm overflows (``[1e20, 1e20]`` in float32) included.
+
+    >>> clip_speed(torch.tensor([[1e20, 1e20], [0.3, 0.4]]), 1.0).tolist()
+    [[0.7071067690849304, 0.7071067690849304], [0.30000001192092896, 0.4000000059604645]]
+    """
     speed = torch.linalg.vector_norm(velocity, dim=-1, keepdim=True)
-    return torch.where(speed > v_pref, velocity * (v_pref / speed.clamp_min(1e-12)), velocity)
+    # an overflowing norm: the direction from the velocity divided by its largest component first
+    scale = velocity.abs().amax(-1, keepdim=True).clamp_min(torch.finfo(velocity.dtype).tiny)
+    unit = velocity / scale
+    huge = unit * (v_pref / torch.linalg.vector_norm(unit, dim=-1, keepdim=True).clamp_min(1e-12))
+    fast = torch.where(torch.isfinite(speed), velocity * (v_pref / speed.clamp_min(1e-12)), huge)
+    return torch.where(speed > v_pref, fast, velocity)
 
 
 def decode_action(kinematics: str, action: Tensor, heading: Tensor, table: Tensor | None = None,

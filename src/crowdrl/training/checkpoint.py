@@ -36,6 +36,25 @@ _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": Crowd
 
 def config_fingerprint(config: dict) -> str:
     """Hash of the parts of a config that define the learning problem (not budgets or logging)."""
+    return hashlib.sha256(json.dumps(fingerprinted(config), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def fingerprint_differences(current: dict, stored: dict) -> list[str]:
+    """``key: <current> here, <stored> in the checkpoint`` for each key of :func:`fingerprinted` whose
+    value differs between two configs (``to_dict`` form), in key order."""
+    def flat(tree: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(tree, dict):
+            return {prefix: tree}
+        return {k: v for key, sub in tree.items() for k, v in flat(sub, f"{prefix}{key}.").items()} or {prefix: {}}
+
+    a, b = ({k.rstrip("."): v for k, v in flat(fingerprinted(c)).items()} for c in (current, stored))
+    missing = "(not set)"
+    return [f"{k}: {a.get(k, missing)!r} here, {b.get(k, missing)!r} in the checkpoint"
+            for k in sorted(a.keys() | b.keys()) if a.get(k, missing) != b.get(k, missing)]
+
+
+def fingerprinted(config: dict) -> dict[str, Any]:
+    """The parts of a config (``to_dict`` form) that :func:`config_fingerprint` hashes."""
     keep = {k: config[k] for k in ("env", "encoder", "exploration", "seed") if k in config}
     for group, neutral in _NEUTRAL.items():
         if group in keep:
@@ -56,7 +75,7 @@ def config_fingerprint(config: dict) -> str:
     keep["train"] = train
     if config.get("planning", {}).get("enabled"):  # planning off: the fingerprint of a run without the key
         keep["planning"] = config["planning"]
-    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+    return keep
 
 
 # what ``torch.load(weights_only=True)`` rebuilds without running code (exact types: a subclass such
@@ -93,14 +112,18 @@ def save_checkpoint(path: Path, payload: dict[str, Any], fingerprint: str) -> No
     atomic_write_bytes(Path(path), buf.getvalue())
 
 
-def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any]:
+def load_checkpoint(path: Path, fingerprint: str | None = None, *, config: dict | None = None) -> dict[str, Any]:
     """Load (``weights_only=True``: nothing in the file is executed) and check a checkpoint; raise
     :class:`CheckpointError` naming the file and the reason otherwise: missing, truncated or corrupt,
     holding a Python object other than tensors and plain containers (refused unread), of another
-    format, or (given ``fingerprint``) written by a run with another configuration."""
+    format, or (given ``fingerprint``) written by a run with another configuration: given ``config``
+    too (the loading run's, ``to_dict`` form), the error names each key that differs, both values."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
+    if not is_torch_file(path):
+        raise CheckpointError(f"{path} is not a crowdrl checkpoint (not a torch file: no zip or pickle header, "
+                              f"e.g. a text file); give a run folder or its checkpoints/best.pt")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -122,6 +145,11 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
             f"{'none' if found is None else found!r}, expected {FORMAT_VERSION}); this code reads format "
             f"{FORMAT_VERSION} only: load it with the crowdrl version that wrote it, or train the run again")
     if fingerprint is not None and data.get("fingerprint") != fingerprint:
+        stored = data.get("config")
+        differ = fingerprint_differences(config, stored) if isinstance(config, dict) and isinstance(stored, dict) else []
+        if differ:
+            raise CheckpointError(f"{path} was written by a run with another configuration; the keys that differ "
+                                  f"(this run's config, e.g. its config.yaml, vs the checkpoint's): {'; '.join(differ)}")
         raise CheckpointError(
             f"{path} was written by a run with another configuration (fingerprint {data.get('fingerprint')} "
             f"!= {fingerprint}); resume it with its own config (see config.yaml in its run folder)"
@@ -129,9 +157,18 @@ def load_checkpoint(path: Path, fingerprint: str | None = None) -> dict[str, Any
     return data
 
 
+def is_torch_file(path: Path | str) -> bool:
+    """Whether ``path`` starts as a ``torch.save`` file does: a zip archive (the default format) or
+    a pickle of protocol 2 or later (the legacy format)."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    return head.startswith(b"PK\x03\x04") or (len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5)
+
+
 def _first_line(exc: BaseException) -> str:
     lines = [line for line in str(exc).splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
+    first = lines[0] if lines else ""
+    return first if len(first) > 8 else f"{type(exc).__name__}: {first}".rstrip(": ")  # never a bare "105"
 
 
 def check_finite_weights(module: torch.nn.Module, path: Path | str, what: str = "network") -> None:

@@ -386,12 +386,26 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     _check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
            f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
            f"({t.warmup_frames}): with this budget not a single update could run")
+    _check(run.resume is None or run.resume.strip() != "", "resume",
+           "is empty (resume= with nothing after it, e.g. resume=$RUN with RUN unset): give the run folder to "
+           "continue, resume=runs/<folder>, or leave resume out to start a new run")
     _check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
            f"hydra.run.dir=<folder> (train.py), out=<folder> (demo.py) or resume=<folder>")
     check_device(run.device)
     if resources:
         check_resources(run)
+        check_logger(run)
     return run
+
+
+def check_logger(run: RunConfig) -> None:
+    """Refuse (naming ``logger.mode``) a wandb run to start online without credentials: wandb would
+    fail, or wait for a key, once the run folder is written."""
+    from crowdrl.training.scalars import has_wandb_credentials, wandb_mode
+
+    if run.logger.name == "wandb" and wandb_mode(run.logger.mode) == "online" and not has_wandb_credentials():
+        raise ConfigError("logger.mode: online, but wandb has no credentials (no WANDB_API_KEY, no netrc entry): "
+                          "run `wandb login` first, or use logger.mode=offline and `wandb sync` later")
 
 
 # Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),

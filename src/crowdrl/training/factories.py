@@ -8,7 +8,7 @@ same :func:`make_env` and act with the same actor, so there is one rollout path
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
@@ -178,6 +178,27 @@ def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...]
                                     entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1), reward_bonus=bonus)
 
 
+def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
+    """``buffer.state_dict()`` with the storage's slots never written set to zero: the storage is
+    allocated uninitialised (``torch.empty``), so those bytes would differ between identical runs
+    and make their ``last.pt`` differ. The slots are zeroed in place (no copy of the buffer): nothing
+    reads a slot before it is written."""
+    state = buffer.state_dict()
+    storage = state.get("_storage", {})
+    written = storage.get("_len")
+
+    def zero_tail(node: Any) -> None:  # the storage: a (nested) dict of [capacity, ...] tensors
+        if isinstance(node, torch.Tensor):
+            node[written:].zero_()
+        elif isinstance(node, dict):
+            for value in node.values():
+                zero_tail(value)
+
+    if isinstance(written, int):
+        zero_tail(storage.get("_storage"))
+    return state
+
+
 def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Collector:
     """A single-process collector of ``num_envs x steps_per_batch`` frames per batch."""
     t = run.train
@@ -185,6 +206,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "crowd_config", "make_actor", "make_buffer",
-           "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer", "make_predictor_of",
-           "make_update_part", "obs_keys", "stored_keys"]
+__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict", "crowd_config",
+           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer",
+           "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]

@@ -12,7 +12,7 @@ import torch
 from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
-from crowdrl.files import atomic_write_json
+from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
 from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, stored_config, to_dict, validate
@@ -49,6 +49,9 @@ def run_training(run: RunConfig, run_dir: Path | str, *, render: bool | None = N
             return done
         if prepare is not None and resumed is None:
             prepare()
+        if resumed is not None:  # a checkpoint write that a kill cut short left its temporary
+            for name in ("last.pt", "best.pt"):
+                remove_stale_temporaries(run_dir / "checkpoints" / name)
     except BaseException:
         lock.release()
         raise
@@ -148,7 +151,7 @@ def checkpoint_path(path: Path | str) -> Path:
         path / "checkpoints" / "best.pt"
 
 
-def load_trained_network(path: Path | str, fingerprint: str | None = None
+def load_trained_network(path: Path | str, fingerprint: str | None = None, *, config: dict | None = None
                          ) -> tuple[RunConfig, torch.nn.Module, dict[str, Any]]:
     """The run config, the Q network (eval mode: noise and dropout off) and the raw payload of a
     trained checkpoint (a run folder or a ``best.pt``).
@@ -156,10 +159,10 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None
     Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
     config the code cannot rebuild, weights that do not fit the network of the config, NaN or
     infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
-    run with another configuration.
+    run with another configuration (given ``config`` too, the loading run's: naming the keys that differ).
     """
     ckpt = checkpoint_path(path)
-    data = load_checkpoint(ckpt, fingerprint)
+    data = load_checkpoint(ckpt, fingerprint, config=config)
     if "net" not in data or "config" not in data:
         raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
                               f"checkpoints/best.pt")
@@ -211,7 +214,7 @@ def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | No
 
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:
     """Greedy evaluation of ``checkpoints/best.pt`` on the test cases of the run's scenario."""
-    _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)))
+    _, net, best = load_trained_network(run_dir, config_fingerprint(to_dict(run)), config=to_dict(run))
     predictor = load_trained_predictor(run, best, checkpoint_path(run_dir))
     metrics, traj = evaluate_network(run, net, episodes=run.train.test_episodes, record_episode=record_episode,
                                      predictor=predictor)
@@ -249,6 +252,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.evaluation.report import eval_record
+    from crowdrl.evaluation.rollout import kept_bytes
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
     from crowdrl.training.config import available_memory, planned_states, planner_bytes
@@ -270,6 +274,13 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
         raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
     humans = {k: v for k, v in (("human_model", human_model), ("robot_visible", robot_visible)) if v is not None}
+    # the metrics keep a row per episode: refuse a count whose records would not fit in memory
+    max_steps = max(CrowdConfig(scenario=s).max_steps for s in ([scenario] if scenario else SCENARIOS))
+    kept, free = kept_bytes(episodes, max_steps), available_memory(device if device.startswith("cuda") else "cpu")
+    if free is not None and kept > free:
+        raise ValueError(f"eval.episodes: {episodes} episodes keep ~{kept / 2**30:,.1f} GiB of per-episode records "
+                         f"(up to {max_steps} rewards each), more than the {free / 2**30:,.1f} GiB of memory available; "
+                         f"lower eval.episodes (another eval.seed gives other cases)")
     if policy == "orca":
         cfg = _eval_crowd(scenario or "circle", humans)
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)

@@ -76,6 +76,26 @@ class ScalarLog:
         self.flush_csv()
 
 
+def wandb_mode(mode: str) -> str:
+    """The mode a wandb run starts in: ``WANDB_MODE`` when set, else ``logger.mode``."""
+    return os.environ.get("WANDB_MODE", mode)
+
+
+def has_wandb_credentials() -> bool:
+    """Whether wandb could log in without asking: ``WANDB_API_KEY``, or a netrc entry (``NETRC`` or
+    ``~/.netrc``) for the wandb host (``WANDB_BASE_URL``, default ``api.wandb.ai``)."""
+    import netrc
+    from urllib.parse import urlparse
+
+    if os.environ.get("WANDB_API_KEY"):
+        return True
+    host = urlparse(os.environ.get("WANDB_BASE_URL", "https://api.wandb.ai")).hostname or "api.wandb.ai"
+    try:
+        return netrc.netrc(os.environ.get("NETRC") or None).authenticators(host) is not None
+    except (OSError, netrc.NetrcParseError):
+        return False
+
+
 class WandbMirror:
     """Mirror of the scalar rows into a wandb run, through TorchRL's ``WandbLogger`` (offline unless the
     mode says otherwise); a resumed run passes its ``resume_id`` and continues the same wandb run."""
@@ -92,7 +112,7 @@ class WandbMirror:
         os.environ.setdefault("WANDB_SILENT", "true")
         # mode goes to wandb.init: WandbLogger's offline=True would set WANDB_MODE for the whole process
         self.logger = WandbLogger(exp_name=Path(run_dir).name, save_dir=str(run_dir), id=resume_id, project=project,
-                                  log_env_packages=False, mode=os.environ.get("WANDB_MODE", mode), config=config,
+                                  log_env_packages=False, mode=wandb_mode(mode), config=config,
                                   reinit="finish_previous")
         self.id = self.logger.experiment.id
 

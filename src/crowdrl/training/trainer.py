@@ -28,8 +28,9 @@ from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
-from crowdrl.training.factories import (MASK_KEY, make_actor, make_buffer, make_collector, make_env, make_exploration, make_loss,
-                                        make_optimizer, make_predictor_of, make_update_part, obs_keys, stored_keys)
+from crowdrl.training.factories import (MASK_KEY, buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
+                                        make_exploration, make_loss, make_optimizer, make_predictor_of, make_update_part,
+                                        obs_keys, stored_keys)
 from crowdrl.training.predictor_loss import PredictorLoss
 from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_bonus, make_network
@@ -168,7 +169,7 @@ class Trainer:
             payload["predictor"] = self.predictor.state_dict()
             payload["predictor_optimizer"] = self.predictor_optimizer.state_dict()
         if self.run.train.save_buffer:
-            payload["buffer"] = self.buffer.state_dict()
+            payload["buffer"] = buffer_state_dict(self.buffer)  # unwritten slots zeroed: identical runs, same bytes
         return payload
 
     def load_state_dict(self, data: dict[str, Any]) -> None:
@@ -218,7 +219,7 @@ class Trainer:
         last = self.ckpt_dir / "last.pt"
         data: dict[str, Any] = {}
         if last.exists():
-            data = load_checkpoint(last, self.fingerprint)
+            data = load_checkpoint(last, self.fingerprint, config=self.config_dict)
             try:
                 self.load_state_dict(data)
             except (KeyError, RuntimeError, ValueError, TypeError) as exc:

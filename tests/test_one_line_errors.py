@@ -1,0 +1,131 @@
+"""Every failure of a command line is one clear line and exit status 2 (docs/reliability.md): Hydra's
+and OmegaConf's errors, a full disk or a read-only folder, refused input; a refused or stopped command
+leaves no folder it created. The commands run in-process here (their Hydra entry points), one in a
+subprocess to check the whole path."""
+
+from __future__ import annotations
+
+import errno
+import importlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(monkeypatch, capsys, module: str, *args: str) -> tuple[int, str]:
+    """(exit status, stderr) of ``crowdrl.cli.<module>`` run in this process with ``args``."""
+    main = importlib.import_module(f"crowdrl.cli.{module}").main
+    monkeypatch.setattr(sys, "argv", [f"{module}.py", *args])
+    with pytest.raises(SystemExit) as stop:
+        main(list(args)) if module == "demo" else main()
+    err = capsys.readouterr().err
+    return stop.value.code, err
+
+
+def one_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.fixture(autouse=True)
+def scratch(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    return tmp_path
+
+
+@pytest.mark.parametrize("module, args, words", [
+    ("train", ["seed=abc"], ["train.py: seed:", "could not be converted to Integer"]),
+    ("train", ["sede=1"], ["sede:", "not in 'RunConfig'"]),
+    ("train", ["resume="], ["resume: is empty"]),
+    ("evaluate", ["env=mars"], ["Could not find 'env/mars'", "available options in 'env': circle"]),
+    ("demo", ["train.num_envs=abc"], ["demo.py: train.num_envs:", "could not be converted to Integer"]),
+])
+def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch, capsys, scratch, module, args, words):
+    code, err = run_cli(monkeypatch, capsys, module, *args, "hydra.run.dir=out" if module != "demo" else "out=out")
+    line = one_line(err)
+    assert code == 2 and all(w in line for w in words), line
+    assert not (scratch / "out").exists() and "HYDRA_FULL_ERROR" not in os.environ
+
+
+def test_a_hydra_error_in_a_real_process_is_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"), "seed=abc"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120, env={**os.environ, "WANDB_MODE": "offline"})
+    assert proc.returncode == 2 and one_line(proc.stderr).startswith("train.py: seed:"), proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS, errno.EACCES])
+def test_a_full_or_read_only_disk_during_training_is_one_line_naming_the_file(monkeypatch, capsys, scratch, code):
+    import crowdrl.training as training
+
+    def full(run, run_dir, **kwargs):
+        raise OSError(code, os.strerror(code), str(Path(run_dir) / "checkpoints" / "last.pt"))
+
+    monkeypatch.setattr(training, "run_training", full)
+    status, err = run_cli(monkeypatch, capsys, "train", "preset=smoke", "logger=csv", "hydra.run.dir=run")
+    line = one_line(err)
+    assert status == 2 and f"({errno.errorcode[code]})" in line and "last.pt" in line, line
+    assert f"resume={scratch / 'run'}" in line, line
+    assert not (scratch / "run").exists()  # the monkeypatched run wrote nothing: the folder Hydra made is gone
+
+
+@pytest.mark.parametrize("fault", ["ENOSPC", "EROFS", "stopped"])
+def test_a_failed_or_stopped_evaluation_is_one_line_and_leaves_no_folder(monkeypatch, capsys, scratch, fault):
+    import crowdrl.evaluation.report as report
+
+    def write_records(folder, records, stem="eval"):
+        if fault == "stopped":
+            raise KeyboardInterrupt
+        raise OSError(getattr(errno, fault), os.strerror(getattr(errno, fault)), str(Path(folder) / "eval.json"))
+
+    monkeypatch.setattr(report, "write_records", write_records)
+    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+                        "hydra.run.dir=runs/eval-x")
+    line = one_line(err)
+    assert code == (130 if fault == "stopped" else 2), line
+    assert ("interrupted" if fault == "stopped" else "eval.json: ") in line, line
+    assert not (scratch / "runs").exists()
+
+
+def test_evaluate_refuses_episodes_beyond_memory_naming_the_key(monkeypatch, capsys, scratch):
+    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=1000000000",
+                        "hydra.run.dir=runs/eval-x")
+    line = one_line(err)
+    assert code == 2 and "eval.episodes: 1000000000 episodes keep" in line and "memory available" in line, line
+    assert not (scratch / "runs").exists()
+
+
+def test_a_run_folder_whose_config_holds_an_unknown_key_or_target_is_refused_naming_it(tmp_path):
+    from omegaconf import OmegaConf
+
+    from crowdrl.cli.train import resumed_config
+    from crowdrl.training.config import ConfigError, RunConfig
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.pt").write_bytes(b"")
+    for text, key in (("seed: 0\nfoo: 1\n", "foo"), ("_target_: os.system\nseed: 0\n", "_target_")):
+        (tmp_path / "config.yaml").write_text(text)
+        with pytest.raises(ConfigError, match=f"config.yaml is not a run config train.py can read \\({key}: Key"):
+            resumed_config(OmegaConf.structured(RunConfig), tmp_path, [f"resume={tmp_path}"])
+
+
+def test_logger_online_without_wandb_credentials_is_refused_at_start(monkeypatch, tmp_path):
+    from crowdrl.training.config import ConfigError, RunConfig, validate
+
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.setenv("NETRC", str(tmp_path / "no-netrc"))
+    run = RunConfig()
+    run.logger.name, run.logger.mode = "wandb", "online"
+    with pytest.raises(ConfigError, match="^logger.mode: online, but wandb has no credentials"):
+        validate(run)
+    monkeypatch.setenv("WANDB_API_KEY", "x" * 40)
+    validate(run)
