@@ -3,7 +3,6 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-export WANDB_MODE ?= offline
 export PYTHONHASHSEED ?= 0
 
 .PHONY: install lint test test-slow demo bench clean

@@ -129,3 +129,34 @@ def test_logger_online_without_wandb_credentials_is_refused_at_start(monkeypatch
         validate(run)
     monkeypatch.setenv("WANDB_API_KEY", "x" * 40)
     validate(run)
+
+
+@pytest.mark.parametrize("env_mode, logger_mode, expected", [
+    (None, "offline", "offline"), (None, "online", "online"), (None, "disabled", "disabled"),
+    ("disabled", "online", "disabled"), ("offline", "online", "offline")])
+def test_the_wandb_mode_follows_logger_mode_and_the_environment_wins_when_set(monkeypatch, tmp_path, env_mode,
+                                                                              logger_mode, expected):
+    """The mode WandbMirror hands to wandb (through TorchRL's WandbLogger, stubbed here): logger.mode, or
+    WANDB_MODE when set; importing a command line no longer sets WANDB_MODE behind the user's back."""
+    import importlib
+
+    import torchrl.record.loggers.wandb as torchrl_wandb
+
+    from crowdrl.training.scalars import WandbMirror
+
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    for name in ("train", "evaluate", "demo", "reproduce"):
+        importlib.import_module(f"crowdrl.cli.{name}")
+    assert "WANDB_MODE" not in os.environ
+    if env_mode is not None:
+        monkeypatch.setenv("WANDB_MODE", env_mode)
+    seen = {}
+
+    class StubLogger:
+        def __init__(self, **kwargs):
+            seen.update(kwargs)
+            self.experiment = type("Run", (), {"id": "stub"})()
+
+    monkeypatch.setattr(torchrl_wandb, "WandbLogger", StubLogger)
+    WandbMirror(tmp_path, {}, "crowdrl", logger_mode, None)
+    assert seen["mode"] == expected

@@ -15,15 +15,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from pathlib import Path
 
 from crowdrl.cli import exit_with_error, one_line_errors
 from crowdrl.resources import config_dir
-
-os.environ.setdefault("WANDB_MODE", "offline")
 
 CONF_DIR = config_dir()
 

@@ -14,7 +14,6 @@ same numbers whatever ``eval.batch``.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -22,8 +21,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
-
-os.environ.setdefault("WANDB_MODE", "offline")
 
 CONF_DIR = str(config_dir())
 

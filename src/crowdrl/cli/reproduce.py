@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import threading
@@ -42,8 +41,6 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
 from crowdrl.tables import interval_cell, markdown_table
-
-os.environ.setdefault("WANDB_MODE", "offline")
 
 CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml

@@ -10,7 +10,6 @@ or ``python experiments/train.py`` in a checkout; the configs are crowdrl's own,
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -18,8 +17,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.cli import command, exit_with_error, folder_error_line, hydra_command
 from crowdrl.resources import config_dir
-
-os.environ.setdefault("WANDB_MODE", "offline")
 
 CONF_DIR = str(config_dir())
 

@@ -123,7 +123,7 @@ class ExplorationConfig:
 @dataclass
 class LoggerConfig:
     name: str = "wandb"
-    mode: str = "offline"  # wandb mode; WANDB_MODE in the environment overrides it
+    mode: str = "offline"  # wandb mode; WANDB_MODE in the environment, when set, wins over it
     project: str = "crowdrl"
     progress_bar: bool = True
     render: bool = True  # after the test: learning_curves.png and a PNG + GIF of test case 0
