@@ -10,6 +10,10 @@ validation >= 0.90.
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --jobs 2
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --table-only
     python experiments/counterfactual_ablation.py --out /tmp/cf --preset smoke --seeds 0 --settings off top5
+
+``--test circle square`` then evaluates every finished run's best checkpoint on the 1000 test cases of
+each scenario (test seed 0) into ``<run>/eval-<scenario>/eval.json``, for ``compare_runs.py``; settings
+are chosen on the validation table above, the test is for the final comparison only.
 """
 
 from __future__ import annotations
@@ -57,6 +61,17 @@ def run_one(folder: Path, setting: str, seed: int, preset: str, extra: list[str]
     with open(folder.parent / f"{folder.name}.log", "ab") as log:
         code = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
     return str(folder), code
+
+
+def test_run(folder: Path, scenario: str) -> int:
+    """``evaluate.py`` of a finished run's best checkpoint on ``scenario``'s 1000 test cases (skipped when done)."""
+    out = folder / f"eval-{scenario}"
+    if (out / "eval.json").exists():
+        return 0
+    cmd = [sys.executable, str(ROOT / "experiments" / "evaluate.py"), f"checkpoint={folder}", f"env={scenario}",
+           f"hydra.run.dir={out}"]
+    with open(folder.parent / f"{folder.name}.log", "ab") as log:
+        return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
 
 
 def validations(folder: Path) -> tuple[list[tuple[int, float]], list[tuple[int, float]]]:
@@ -133,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settings", nargs="+", default=["off", "top5", "merged5", "random5"], choices=sorted(SETTINGS))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--test", nargs="*", default=[], metavar="SCENARIO",
+                    help="evaluate every finished run on these scenarios' 1000 test cases (for compare_runs.py)")
     ap.add_argument("--json", action="store_true", help="print table.json instead of the table")
     ap.add_argument("extra", nargs="*", help="Hydra overrides given to every new run")
     args = ap.parse_args(argv)
@@ -147,6 +164,14 @@ def main(argv: list[str] | None = None) -> int:
         failed = [f for f, code in results if code != 0]
         print(f"{len(results) - len(failed)}/{len(results)} runs finished in {(time.time() - start) / 60:.0f} min"
               + (f"; failed: {', '.join(failed)}" if failed else ""))
+    if args.test:
+        done = [args.out / "runs" / f"{s}-s{seed}" for seed in args.seeds for s in args.settings]
+        done = [f for f in done if (f / "status.json").exists()
+                and json.loads((f / "status.json").read_text()).get("state") == "completed"]
+        jobs = [(f, scenario) for f in done for scenario in args.test]
+        with ThreadPoolExecutor(args.jobs) as pool:
+            codes = list(pool.map(lambda job: test_run(*job), jobs))
+        failed += [f"{f}/eval-{sc}" for (f, sc), code in zip(jobs, codes) if code != 0]
     text = table(args.out, args.settings, args.seeds)
     print(dumps_json(json.loads((args.out / "table.json").read_text())) if args.json else text)
     return 1 if failed else 0
