@@ -34,7 +34,9 @@ def _bits(t: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------- no obstacles: as before
 def test_no_obstacles_bit_identical_to_before_obstacles():
     """orca_solve's outputs at c377921 (tests/data/make_orca_no_obstacle_baseline.py): 240 scenes,
-    float32/float64, with and without the presence mask; also with an empty obstacle set."""
+    float32/float64, with and without the presence mask; also with an empty obstacle set. Bit for bit,
+    except float64 velocities within 1e-13: recorded on an AMD EPYC (AVX2), an Intel Xeon with AVX-512
+    gives a few of them an ulp apart (at most 1.4e-14), whatever ATEN_CPU_CAPABILITY or MKL_CBWR says."""
     data = np.load(BASELINE)
     checked = 0
     for kind in sorted({k.split("/")[0] for k in data.files}):
@@ -52,7 +54,12 @@ def test_no_obstacles_bit_identical_to_before_obstacles():
                 sol = orca_solve(**args, mask=m, **PARAMS, **extra)
                 for field in ("velocities", "lp_infeasible", "num_neighbors"):
                     want = torch.from_numpy(data[f"{kind}/{tag}/{field}"])
-                    assert torch.equal(_bits(getattr(sol, field)), _bits(want)), (kind, tag, field, bool(extra))
+                    got = getattr(sol, field)
+                    if dtype == torch.float64 and field == "velocities":  # an ulp apart across CPUs (see above)
+                        torch.testing.assert_close(got, want, atol=1e-13, rtol=0, equal_nan=True,
+                                                   msg=lambda m: f"{(kind, tag, field, bool(extra))}: {m}")
+                    else:
+                        assert torch.equal(_bits(got), _bits(want)), (kind, tag, field, bool(extra))
                 checked += 1
     assert checked == 2 * 10
 
