@@ -11,7 +11,7 @@ seeded robot actions:
   is the core's rate with the reset time taken out);
 * ``env``: the same through :class:`CrowdNavEnv` and TorchRL's ``step_and_maybe_reset`` (the
   collector's loop), showing the TensorDict/TorchRL overhead;
-* ``ref``: :class:`~crowdrl.sim.reference.ReferenceCrowdSim` (plain Python + RVO2) stepping the
+* ``ref``: :class:`~crowdrl_testing.reference.ReferenceCrowdSim` (plain Python + RVO2) stepping the
   same scenes one env at a time, as reference simulators do; independent of B, so measured
   once per N on ``--ref-steps`` steps in total, median of three runs (building a new simulator at every reset is
   timed; drawing the initial state is not: it is generated beforehand by ``initial_states``).
@@ -180,7 +180,7 @@ def bench_env(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, max_
 # ------------------------------------------------------------------------ reference (RVO2)
 def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | None:
     try:
-        from crowdrl.sim.reference import ReferenceCrowdSim  # noqa: PLC0415
+        from crowdrl_testing.reference import ReferenceCrowdSim  # noqa: PLC0415
         import pyrvo  # noqa: F401, PLC0415
     except ImportError as exc:
         log(f"reference column skipped: {exc}")

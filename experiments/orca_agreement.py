@@ -4,7 +4,7 @@ scenes among static obstacles (walls, pillars, narrow gaps, concave polygons, ro
     python experiments/orca_agreement.py          # needs pyrvo (installed by `make install`)
     python experiments/orca_agreement.py --json
 
-Uses the same scenes (:mod:`crowdrl.testing`) and exclusions as ``tests/test_orca.py`` and
+Uses the same scenes (:mod:`crowdrl_testing`) and exclusions as ``tests/test_orca.py`` and
 ``tests/test_orca_obstacles.py`` (which assert |dv| <= 1e-4) and prints, per set and branch, the
 measured worst |dv| and how many agents were bit-exact (obstacle scenes: the share within 1e-4),
 then the agents excluded as ill-conditioned and the largest float32 speed.
@@ -22,7 +22,7 @@ import torch
 
 from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.orca import orca_solve
-from crowdrl.testing import (KINDS, OBSTACLE_KINDS, ORCA_TOLERANCE, padded_batch, padded_obstacles, random_obstacle_scene,
+from crowdrl_testing import (KINDS, OBSTACLE_KINDS, ORCA_TOLERANCE, padded_batch, padded_obstacles, random_obstacle_scene,
                              random_scene, rvo2_velocities)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,7 +2,7 @@
 
     python experiments/orca_overshoot.py [--scenes 3000] [--json]   # needs pyrvo (`make install`)
 
-For N = 5, 10, 20, 30, 50 agents: random ``crowd`` scenes of :mod:`crowdrl.testing` (positions
+For N = 5, 10, 20, 30, 50 agents: random ``crowd`` scenes of :mod:`crowdrl_testing` (positions
 uniform in a 10 m square, radius 0.31 m as the humans' ORCA radius, random current velocities and
 goals, max speed 1 m/s) with the humans' ORCA parameters, fixed seeds. Prints the largest speed returned by our float32 ORCA
 (:func:`crowdrl.sim.orca.orca_velocities`), by pyrvo's RVO2 (float32 C++) and by our float64
@@ -18,7 +18,7 @@ import torch
 
 from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.orca import orca_velocities
-from crowdrl.testing import random_scene, rvo2_velocities
+from crowdrl_testing import random_scene, rvo2_velocities
 
 SIZES = (5, 10, 20, 30, 50)
 PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)

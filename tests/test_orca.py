@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crowdrl.sim.orca import orca_solve, orca_velocities
-from crowdrl.testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
+from crowdrl_testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
 
 CASES = json.load(gzip.open(Path(__file__).parent / "data" / "orca_cases.json.gz", "rt"))["cases"]
 

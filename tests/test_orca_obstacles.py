@@ -12,7 +12,7 @@ import torch
 
 from crowdrl.sim.obstacles import ObstacleEdges, process_obstacles
 from crowdrl.sim.orca import orca_solve, orca_velocities
-from crowdrl.testing import (
+from crowdrl_testing import (
     OBSTACLE_KINDS,
     ORCA_TOLERANCE,
     padded_batch,

@@ -165,11 +165,7 @@ def test_default_folders_of_every_entry_point_carry_a_unique_part():
         dirs.append(str(cfg.hydra.run.dir))
     assert all(re.fullmatch(r"runs/eval-\d{8}-\d{6}-[0-9a-f]{6}", d) for d in dirs), dirs
     assert dirs[0] != dirs[1]
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("demo_script", ROOT / "experiments" / "demo.py")
-    demo = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(demo)
+    import demo
     first, second = demo.default_out(RunConfig()), demo.default_out(RunConfig())
     assert first != second and re.fullmatch(r"demo-\d{8}-\d{6}-circle-s0-[0-9a-f]{6}", first.name), first
 
@@ -450,13 +446,9 @@ def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_param
 
 
 def _reproduce_module():
-    import importlib.util
+    import reproduce
 
-    spec = importlib.util.spec_from_file_location("reproduce_script", ROOT / "experiments" / "reproduce.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return reproduce
 
 
 def _plan(reproduce, out: Path, **over):

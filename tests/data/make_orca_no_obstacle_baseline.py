@@ -3,7 +3,7 @@ random padded scenes, the fixture that keeps the no-obstacle path bit-identical 
 import numpy as np
 import torch
 from crowdrl.sim.orca import orca_solve
-from crowdrl.testing import KINDS, padded_batch, random_scene
+from crowdrl_testing import KINDS, padded_batch, random_scene
 torch.set_num_threads(1)
 out = {}
 gen = np.random.default_rng(20240)

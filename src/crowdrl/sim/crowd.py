@@ -72,7 +72,7 @@ def preferred_velocities(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Te
     """Preferred velocities ``[..., 2]`` of humans at ``position`` heading for ``goal`` (``[..., 2]``):
     :func:`human_preferred_velocity` towards the goal; in ``doorway`` the same speed, towards
     :func:`doorway_waypoints` (the gap) while the wall is between a human and its goal. A pure
-    function (the reference simulator calls it too, :mod:`crowdrl.sim.reference`)."""
+    function (the reference simulator of the tests calls it too, ``experiments/crowdrl_testing/reference.py``)."""
     pref = human_preferred_velocity(position, goal)
     if cfg.scenario != "doorway":
         return pref

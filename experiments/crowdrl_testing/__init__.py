@@ -1,8 +1,12 @@
-"""Random ORCA scenes and their RVO2 answers (through pyrvo), for the tests and benchmarks.
+"""The test support shared by ``tests/`` and the scripts of ``experiments/``: random ORCA scenes
+and their RVO2 answers (through pyrvo), plausible robot-centric states, a run killed mid-training;
+:mod:`crowdrl_testing.reference`, the plain RVO2-based reference simulator.
 
-Not used by the library itself. :func:`rvo2_velocities` needs ``pyrvo``, a test/benchmark-only
-install (``make install``); it is imported when that function is called, so importing this module
-does not need it.
+Not part of the library and not in its wheel. It lives in ``experiments/``, the folder both import
+from: a script run as ``python experiments/<name>.py`` has it on ``sys.path``, and pytest puts it
+there (``pythonpath`` in ``pyproject.toml``). :func:`rvo2_velocities` needs ``pyrvo``, a
+test/benchmark-only install (``make install``); it is imported when that function is called, so
+importing this package does not need it.
 """
 
 from __future__ import annotations
