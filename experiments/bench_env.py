@@ -41,7 +41,7 @@ Usage::
 
     python experiments/bench_env.py --quick
     python experiments/bench_env.py --threads 1,2 --json > bench.json
-    python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.fast, when importable
+    python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.orca_compiled, when importable
     python experiments/bench_env.py --compare-obstacles --no-memory  # circle vs doorway, B = 1024, N = 10
 
 The compiled backend builds one graph per (B, N) on first use (minutes with a cold inductor
@@ -91,9 +91,9 @@ def select_step(backend: str):
     """
     if backend == "compiled":
         try:
-            from crowdrl.sim import fast  # noqa: F401,PLC0415
+            from crowdrl.sim import orca_compiled  # noqa: F401,PLC0415
         except ImportError as exc:
-            log(f"backend 'compiled' is unavailable: crowdrl.sim.fast cannot be imported ({exc})")
+            log(f"backend 'compiled' is unavailable: crowdrl.sim.orca_compiled cannot be imported ({exc})")
             return None
     return crowd.step
 
@@ -392,7 +392,7 @@ def parse_args(argv=None):
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
     p.add_argument("--memory-batch-size", type=int, default=MEM_B, help=f"B of the memory probe (default {MEM_B})")
     p.add_argument("--backend", default="torch", choices=("torch", "compiled"),
-                   help="'compiled' steps with crowdrl.sim.fast when it can be imported")
+                   help="'compiled' steps with crowdrl.sim.orca_compiled when it can be imported")
     p.add_argument("--_memprobe", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.memory_batch_size < 1:

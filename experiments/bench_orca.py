@@ -1,4 +1,4 @@
-"""Throughput of the batched ORCA: eager (``crowdrl.sim.orca``) vs compiled (``crowdrl.sim.fast``).
+"""Throughput of the batched ORCA: eager (``crowdrl.sim.orca``) vs compiled (``crowdrl.sim.orca_compiled``).
 
 Reports batched ORCA velocity computations per second, counted in agent-set steps/s (one call
 on ``B`` scenes of ``N`` agents counts ``B``), for a grid of batch sizes ``B``, crowd sizes ``N``
@@ -75,7 +75,7 @@ def bench(threads: list[int], batches: list[int], humans: list[int], backends: l
                     if backend == "eager":
                         fn = lambda: orca_solve(*args, **params)
                     else:
-                        from crowdrl.sim.fast import compiled_orca_solve
+                        from crowdrl.sim.orca_compiled import compiled_orca_solve
 
                         fn = lambda: compiled_orca_solve(*args, **params)
                         t0 = time.perf_counter()

@@ -91,7 +91,7 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: Obstac
     with ``cfg.orca_time_horizon_obst``; ``obstacle_edges`` are their processed edges if already at
     hand (:func:`crowdrl.sim.obstacles.process_obstacles`), else the polygons are processed here."""
     if cfg.orca_backend == "compiled":
-        from crowdrl.sim.fast import compiled_orca_solve as solve
+        from crowdrl.sim.orca_compiled import compiled_orca_solve as solve
     else:
         solve = orca_solve
     B, N = state.batch_size, state.num_humans

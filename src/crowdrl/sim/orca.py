@@ -32,7 +32,7 @@ the running result either.
 Bit-level fidelity to RVO2 (float32): square roots are correctly rounded (ATen's CPU ``sqrt``
 is not; see :func:`_sqrt`), Vector2 divisions multiply by the reciprocal as RVO2 does, and
 neighbour ties go by agent index. Selections use a branch-free bitwise select on large
-tensors (ATen's CPU ``where`` mispredicts on irregular masks). :mod:`crowdrl.sim.fast` is a
+tensors (ATen's CPU ``where`` mispredicts on irregular masks). :mod:`crowdrl.sim.orca_compiled` is a
 compiled backend computing the same thing.
 """
 

@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 from torchrl.objectives import LossModule
 
-from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
+from crowdrl.compile import CPP_WRAPPER, LazyCompiled
 
 
 WEIGHT_KEY = "loss_weight"  # optional [batch] weights of a batch's squared TD errors (they sum to 1)
