@@ -371,7 +371,7 @@ def test_the_raw_simulator_refuses_non_finite_inputs_naming_them():
 
     from crowdrl.sim import crowd
     from crowdrl.sim.config import CrowdConfig
-    from crowdrl.sim.orca import orca_velocities
+    from crowdrl.sim.orca import OrcaParams, orca_velocities
     from crowdrl.sim.rng import episode_keys
     from crowdrl.sim.scenarios import initial_states
 
@@ -387,7 +387,7 @@ def test_the_raw_simulator_refuses_non_finite_inputs_naming_them():
     crowd.step(cfg, state, torch.zeros(2, 2))  # finite: fine
     p = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
     r = torch.full((1, 3), 0.3)
-    kw = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+    kw = dict(params=OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0))
     assert orca_velocities(p, torch.zeros_like(p), torch.zeros_like(p), r, r, **kw).isfinite().all()
     for name in ("positions", "velocities", "pref_velocities"):
         args = {"positions": p, "velocities": torch.zeros_like(p), "pref_velocities": torch.zeros_like(p)}

@@ -13,7 +13,7 @@ from torch import Tensor
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import wrap_angle
 from crowdrl.sim.obstacles import ObstacleEdges, path_obstacle_distance
-from crowdrl.sim.orca import orca_solve, require_finite
+from crowdrl.sim.orca import OrcaParams, orca_solve, require_finite
 from crowdrl.sim.scenarios import new_human_goals
 from crowdrl.sim.state import CrowdState
 
@@ -104,10 +104,7 @@ def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: Obstac
         human_preferred_velocities(cfg, state),
         radius,
         torch.full_like(radius, cfg.human_v_pref),
-        time_step=cfg.time_step,
-        neighbor_dist=cfg.orca_neighbor_dist,
-        max_neighbors=cfg.orca_max_neighbors,
-        time_horizon=cfg.orca_time_horizon,
+        OrcaParams.from_config(cfg),
         mask=mask,
         **_orca_obstacles(cfg, state, obstacle_edges),
     )
@@ -119,9 +116,8 @@ def _orca_obstacles(cfg: CrowdConfig, state: CrowdState, edges: ObstacleEdges | 
     if not state.has_obstacles:
         return {}
     if edges is not None:
-        return {"obstacles": edges, "time_horizon_obst": cfg.orca_time_horizon_obst}
-    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask,
-            "time_horizon_obst": cfg.orca_time_horizon_obst}
+        return {"obstacles": edges}
+    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask}
 
 
 def closest_surface_distance(rel_position: Tensor, rel_velocity: Tensor, dt: float, radii: float) -> Tensor:

@@ -59,6 +59,7 @@ from torch import Tensor
 from crowdrl.sim.obstacles import ObstacleEdges
 from crowdrl.sim.orca import (
     RVO_EPSILON,
+    OrcaParams,
     OrcaSolution,
     check_orca_inputs,
     agent_line_math,
@@ -446,15 +447,11 @@ def compiled_orca_solve(
     pref_velocities: Tensor,
     radius: Tensor,
     max_speed: Tensor,
+    params: OrcaParams,
     *,
-    time_step: float,
-    neighbor_dist: float,
-    max_neighbors: int,
-    time_horizon: float,
     mask: Tensor | None = None,
     obstacles: Tensor | ObstacleEdges | None = None,
     obstacle_mask: Tensor | None = None,
-    time_horizon_obst: float | None = None,
 ) -> OrcaSolution:
     """:func:`crowdrl.sim.orca.orca_solve`, compiled; same arguments, result and dtypes.
 
@@ -465,13 +462,10 @@ def compiled_orca_solve(
     :data:`OBSTACLE_SLOTS`; a call where an agent has more obstacle neighbours is computed again with
     more slots (one more compilation), kept for that configuration from then on.
     """
-    check_orca_inputs(
-        positions, velocities, pref_velocities, radius, max_speed, mask,
-        time_step, neighbor_dist, max_neighbors, time_horizon,
-    )
-    edges, tho = prepare_obstacles(positions, obstacles, obstacle_mask, time_horizon_obst, time_horizon)
+    check_orca_inputs(positions, velocities, pref_velocities, radius, max_speed, mask, params)
+    edges = prepare_obstacles(positions, obstacles, obstacle_mask)
     B, N, _ = positions.shape
-    K = min(int(max_neighbors), N - 1)
+    K = min(int(params.max_neighbors), N - 1)
     inp = torch.cat(
         (positions, velocities, pref_velocities, radius.unsqueeze(-1), max_speed.unsqueeze(-1)), -1
     ).permute(2, 1, 0).contiguous()  # [8, N, B]
@@ -484,7 +478,7 @@ def compiled_orca_solve(
         size = -(-edges.num_edges // _EDGE_ALIGN) * _EDGE_ALIGN
         ep = _pack_edges(edges, size)
         margs = (inp, None if mask is None else margs[1], ep)
-        base = (size, edges.ancestors.shape[-1], float(tho))
+        base = (size, edges.ancestors.shape[-1], float(params.obstacle_horizon))
         slots = _SLOTS.get(base, min(size, OBSTACLE_SLOTS))
     if DYNAMIC_BATCH and B > 1:
         for t in margs:
@@ -493,8 +487,8 @@ def compiled_orca_solve(
     while True:
         if edges is not None and edges.num_edges > 0:
             obst = base[:2] + (slots, base[2])
-        main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, time_step, neighbor_dist,
-                                  time_horizon, mask is not None, obst)
+        main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, params.time_step, params.neighbor_dist,
+                                  params.time_horizon, mask is not None, obst)
         out = main(*margs)
         if obst is None:
             break
