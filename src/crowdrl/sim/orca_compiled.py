@@ -17,7 +17,7 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
   distance) followed by per-slot selects.
 * **One big fusion group.** ``max_fusion_size`` is raised far above inductor's default of 64
   nodes; with the default the graph is cut into many kernels streaming every intermediate
-  through memory, several times slower.
+  through memory.
 * **Obstacles in the same graph.** With obstacles the processed edges (eager
   :func:`~crowdrl.sim.obstacles.process_obstacles`, once per call unless given as
   :class:`~crowdrl.sim.obstacles.ObstacleEdges`) are packed ``[F, E, B]``; the graph finds each
@@ -27,8 +27,7 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
   the "already covered" rule and puts the kept lines first, hard in ``linearProgram3``.
 * **The rare 3-D fallback apart.** ``linearProgram3`` (``O(K^3)`` work) runs in a second compiled
   graph over only the agents whose 2-D program failed (gathered eagerly, padded to a multiple
-  of 16 lanes), compiled once with a dynamic agent count; in crowd scenes well under 1% of the
-  agents need it.
+  of 16 lanes), compiled once with a dynamic agent count; in crowd scenes few agents need it.
 
 Exactness: the per-element arithmetic is the eager path's, in the same order (and RVO2's:
 multiplication by reciprocals where RVO2 divides a ``Vector2``, ties by agent index); inductor
@@ -40,10 +39,10 @@ Cost: compilation is lazy, on the first call of each static configuration
 ``(B, N, dtype, device, ORCA parameters, mask given or not, torch.get_num_threads())``, with
 obstacles also the padded edge count, the kd-tree depth, ``time_horizon_obst`` and the slots, and kept
 in a process-wide cache (inductor specialises its OpenMP code on the thread count). The graphs
-have thousands of nodes: with a cold inductor cache one configuration takes minutes (about 2 to
-8 min for B=1024, N=10 on a loaded 2-core machine: tracing, fusion scheduling and a large C++
-translation unit); with inductor's on-disk cache warm (same torch, same configuration, cache
-directory kept, e.g. ``TORCHINDUCTOR_CACHE_DIR``) it takes seconds. Keep the batch shape static.
+have thousands of nodes: with a cold inductor cache one configuration takes minutes (tracing,
+fusion scheduling and a large C++ translation unit; docs/benchmarks.md); with inductor's on-disk
+cache warm (same torch, same configuration, cache directory kept, e.g. ``TORCHINDUCTOR_CACHE_DIR``)
+it takes seconds. Keep the batch shape static.
 """
 
 from __future__ import annotations
