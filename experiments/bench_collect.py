@@ -98,7 +98,7 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
         "env resets (CrowdNavEnv._reset)": cum("envs/crowd_nav.py", "_reset"),
         "robot-centric transform": cum("envs/robot_centric.py", "_call"),
         # compiled acting: CompiledModule.forward holds the compiled frame of CrowdQNetwork.forward
-        "policy forward (Q network)": max(cum("models/qnet.py", "forward"), cum("models/lazy_compile.py", "forward")),
+        "policy forward (Q network)": max(cum("models/qnet.py", "forward"), cum("crowdrl/compile.py", "forward")),
     }
     policy_all = cum("tensordict/nn/sequence.py", "forward")  # cProfile counts the outermost call of a recursion
     parts["policy: TensorDict modules, ε-greedy"] = max(0.0, policy_all - parts["policy forward (Q network)"])

@@ -11,7 +11,7 @@ seeded robot actions:
   is the core's rate with the reset time taken out);
 * ``env``: the same through :class:`CrowdNavEnv` and TorchRL's ``step_and_maybe_reset`` (the
   collector's loop), showing the TensorDict/TorchRL overhead;
-* ``ref``: :class:`~crowdrl.sim.reference.ReferenceCrowdSim` (plain Python + RVO2) stepping the
+* ``ref``: :class:`~crowdrl_testing.reference.ReferenceCrowdSim` (plain Python + RVO2) stepping the
   same scenes one env at a time, as reference simulators do; independent of B, so measured
   once per N on ``--ref-steps`` steps in total, median of three runs (building a new simulator at every reset is
   timed; drawing the initial state is not: it is generated beforehand by ``initial_states``).
@@ -44,7 +44,7 @@ Usage::
 
     python experiments/bench_env.py --quick
     python experiments/bench_env.py --threads 1,2 --json > bench.json
-    python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.fast, when importable
+    python experiments/bench_env.py --backend compiled --quick  # crowdrl.sim.orca_compiled, when importable
     python experiments/bench_env.py --compare-obstacles --no-memory  # circle vs doorway, B = 1024, N = 10
     python experiments/bench_env.py --compare-humans --no-memory     # orca, social_force, linear, B = 1024
 
@@ -95,9 +95,9 @@ def select_step(backend: str):
     """
     if backend == "compiled":
         try:
-            from crowdrl.sim import fast  # noqa: F401,PLC0415
+            from crowdrl.sim import orca_compiled  # noqa: F401,PLC0415
         except ImportError as exc:
-            log(f"backend 'compiled' is unavailable: crowdrl.sim.fast cannot be imported ({exc})")
+            log(f"backend 'compiled' is unavailable: crowdrl.sim.orca_compiled cannot be imported ({exc})")
             return None
     return crowd.step
 
@@ -184,7 +184,7 @@ def bench_env(cfg: CrowdConfig, B: int, steps: int, warmup: int, seed: int, max_
 # ------------------------------------------------------------------------ reference (RVO2)
 def bench_reference(cfg: CrowdConfig, total_steps: int, seed: int) -> dict | None:
     try:
-        from crowdrl.sim.reference import ReferenceCrowdSim  # noqa: PLC0415
+        from crowdrl_testing.reference import ReferenceCrowdSim  # noqa: PLC0415
         import pyrvo  # noqa: F401, PLC0415
     except ImportError as exc:
         log(f"reference column skipped: {exc}")
@@ -432,7 +432,7 @@ def parse_args(argv=None):
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
     p.add_argument("--memory-batch-size", type=int, default=MEM_B, help=f"B of the memory probe (default {MEM_B})")
     p.add_argument("--backend", default="torch", choices=("torch", "compiled"),
-                   help="'compiled' steps with crowdrl.sim.fast when it can be imported")
+                   help="'compiled' steps with crowdrl.sim.orca_compiled when it can be imported")
     p.add_argument("--_memprobe", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.memory_batch_size < 1:

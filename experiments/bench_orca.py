@@ -1,4 +1,4 @@
-"""Throughput of the batched ORCA: eager (``crowdrl.sim.orca``) vs compiled (``crowdrl.sim.fast``).
+"""Throughput of the batched ORCA: eager (``crowdrl.sim.orca``) vs compiled (``crowdrl.sim.orca_compiled``).
 
 Reports batched ORCA velocity computations per second, counted in agent-set steps/s (one call
 on ``B`` scenes of ``N`` agents counts ``B``), for a grid of batch sizes ``B``, crowd sizes ``N``
@@ -26,7 +26,7 @@ from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import human_preferred_velocity
-from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.orca import OrcaParams, orca_solve
 from crowdrl.sim.scenarios import initial_states
 
 
@@ -37,10 +37,9 @@ def make_inputs(num_humans: int, batch: int, warm_steps: int = 4, scenario: str 
     pos, vel, goal = state.human_position, state.human_velocity, state.human_goal
     radius = torch.full(pos.shape[:2], cfg.human_radius + cfg.orca_radius_margin, dtype=pos.dtype)
     max_speed = torch.full_like(radius, cfg.human_v_pref)
-    params = dict(time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
-                  max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon)
+    params = OrcaParams.from_config(cfg)
     for _ in range(warm_steps):
-        vel = orca_solve(pos, vel, human_preferred_velocity(pos, goal), radius, max_speed, **params).velocities
+        vel = orca_solve(pos, vel, human_preferred_velocity(pos, goal), radius, max_speed, params).velocities
         pos = pos + vel * cfg.time_step
     args = (pos, vel, human_preferred_velocity(pos, goal), radius, max_speed)
     return args, params, cfg, state.replace(human_position=pos, human_velocity=vel)
@@ -73,11 +72,11 @@ def bench(threads: list[int], batches: list[int], humans: list[int], backends: l
                 for backend in backends:
                     compile_s = None
                     if backend == "eager":
-                        fn = lambda: orca_solve(*args, **params)
+                        fn = lambda: orca_solve(*args, params)
                     else:
-                        from crowdrl.sim.fast import compiled_orca_solve
+                        from crowdrl.sim.orca_compiled import compiled_orca_solve
 
-                        fn = lambda: compiled_orca_solve(*args, **params)
+                        fn = lambda: compiled_orca_solve(*args, params)
                         t0 = time.perf_counter()
                         fn()
                         compile_s = time.perf_counter() - t0

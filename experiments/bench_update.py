@@ -20,7 +20,6 @@ import statistics
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_collect import ROOT, bench_train_rows  # noqa: E402
 from benchkit import Column, add_json_argument, emit, log  # noqa: E402
 

@@ -22,7 +22,6 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchkit import Column, add_json_argument, emit  # noqa: E402
 
 STILL_STEPS = 40  # "stood still": mean speed below STILL_SPEED over the last STILL_STEPS steps

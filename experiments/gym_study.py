@@ -21,8 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import gym_intrinsic  # noqa: E402
 
 from crowdrl.evaluation.stats import mean_interval  # noqa: E402

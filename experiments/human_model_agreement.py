@@ -3,7 +3,7 @@
     python experiments/human_model_agreement.py --model orca --robot-visible --seed 0 --scenes 3000
     python experiments/human_model_agreement.py --model social_force --seed 0 --scenes 3000 --json
 
-Scenes: :func:`crowdrl.testing.random_crowd_scene` (``crowd``, ``dense``, ``overlap`` in turn: a 10 m
+Scenes: :func:`crowdrl_testing.random_crowd_scene` (``crowd``, ``dense``, ``overlap`` in turn: a 10 m
 square, clusters with mm gaps, overlapping clusters) with a robot at a random place and velocity. The
 batched side is the simulator's own path (:func:`crowdrl.sim.humans.human_velocities` on a
 :class:`~crowdrl.sim.state.CrowdState`, float32); the reference is
@@ -37,7 +37,8 @@ import torch
 from benchkit import Column, add_json_argument, emit, log
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.humans import human_velocities
-from crowdrl.testing import (CROWD_KINDS, ORCA_TOLERANCE, crowd_scene_state, random_crowd_scene, rvo2_velocities,
+from crowdrl.sim.orca import OrcaParams
+from crowdrl_testing import (CROWD_KINDS, ORCA_TOLERANCE, crowd_scene_state, random_crowd_scene, rvo2_velocities,
                              socialforce_velocities)
 
 MODELS = ("orca", "social_force")
@@ -62,8 +63,7 @@ def reference(cfg: CrowdConfig, scene: dict[str, np.ndarray]) -> np.ndarray:
                      "radius": np.float32(cfg.robot_radius + cfg.orca_radius_margin),
                      "max_speed": np.float32(cfg.robot_v_pref)}
             humans = {k: np.concatenate((v, np.asarray(robot[k])[None])) for k, v in humans.items()}
-        return rvo2_velocities(humans, time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
-                               max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon)[:n]
+        return rvo2_velocities(humans, OrcaParams.from_config(cfg))[:n]
     goals, speeds, has_goal = scene["goals"], np.full(n, cfg.human_v_pref), np.ones(n, bool)
     if cfg.robot_visible:
         pos, vel = np.concatenate((pos, scene["robot_position"][None])), np.concatenate((vel, scene["robot_velocity"][None]))

@@ -4,7 +4,7 @@ scenes among static obstacles (walls, pillars, narrow gaps, concave polygons, ro
     python experiments/orca_agreement.py          # needs pyrvo (installed by `make install`)
     python experiments/orca_agreement.py --json
 
-Uses the same scenes (:mod:`crowdrl.testing`) and exclusions as ``tests/test_orca.py`` and
+Uses the same scenes (:mod:`crowdrl_testing`) and exclusions as ``tests/test_orca.py`` and
 ``tests/test_orca_obstacles.py`` (which assert |dv| <= 1e-4) and prints, per set and branch, the
 measured worst |dv| and how many agents were bit-exact (obstacle scenes: the share within 1e-4),
 then the agents excluded as ill-conditioned and the largest float32 speed.
@@ -15,14 +15,15 @@ from __future__ import annotations
 import argparse
 import gzip
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from benchkit import Column, add_json_argument, emit, log
-from crowdrl.sim.orca import orca_solve
-from crowdrl.testing import (KINDS, OBSTACLE_KINDS, ORCA_TOLERANCE, padded_batch, padded_obstacles, random_obstacle_scene,
+from crowdrl.sim.orca import OrcaParams, orca_solve
+from crowdrl_testing import (KINDS, OBSTACLE_KINDS, ORCA_TOLERANCE, padded_batch, padded_obstacles, random_obstacle_scene,
                              random_scene, rvo2_velocities)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,8 +43,8 @@ def main(argv: list[str] | None = None) -> dict:
         i, o = c["input"], c["output"]
         t = lambda k: torch.tensor(i[k]).unsqueeze(0)  # noqa: E731
         sol = orca_solve(t("positions"), t("velocities"), t("pref_velocities"), t("radius"), t("max_speed"),
-                         time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
-                         max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"])
+                         OrcaParams(time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
+                                    max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"]))
         err = np.linalg.norm(sol.velocities[0].double().numpy() - np.array(o["new_velocities"]), axis=-1)
         sens, inf = np.array(o["precision_sensitive"]), np.array(o["lp_infeasible"])
         for branch, m in (("feasible", ~inf & ~sens), ("fallback", inf & ~sens)):
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> dict:
         refs = [rvo2_velocities(s) for s in scenes]
         b32, mask = padded_batch(scenes)
         b64, _ = padded_batch(scenes, torch.float64)
-        params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0, mask=mask)
+        params = dict(params=OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0), mask=mask)
         v32, v64 = orca_solve(**b32, **params), orca_solve(**b64, **params).velocities
         for b, (s, ref) in enumerate(zip(scenes, refs)):
             n = len(s["positions"])
@@ -105,19 +106,19 @@ def obstacle_agreement(scenes_per_set: int) -> list[dict]:
     per kind, the float32 answers' worst |dv| against RVO2 over the well-conditioned agents, and the
     share of all agents (ill-conditioned ones included) within the tolerance."""
     rows = []
-    params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+    params = OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
     for kind in OBSTACLE_KINDS:
         worst, n_all, n_within, n_sens, n_obst = 0.0, 0, 0, 0, 0
         for tho in (5.0, 2.0):
             gen = np.random.default_rng(98765 + 10 * OBSTACLE_KINDS.index(kind) + int(tho))
             scenes = [random_obstacle_scene(gen, kind) for _ in range(scenes_per_set)]
-            refs = [rvo2_velocities(s, **params, time_horizon_obst=tho) for s in scenes]
+            refs = [rvo2_velocities(s, replace(params, time_horizon_obst=tho)) for s in scenes]
             solved = {}
             for dtype in (torch.float32, torch.float64):
                 batch, mask = padded_batch(scenes, dtype)
                 obstacles, obstacle_mask = padded_obstacles(scenes, dtype)
-                solved[dtype] = orca_solve(**batch, mask=mask, obstacles=obstacles, obstacle_mask=obstacle_mask,
-                                           time_horizon_obst=tho, **params)
+                solved[dtype] = orca_solve(**batch, params=replace(params, time_horizon_obst=tho), mask=mask,
+                                           obstacles=obstacles, obstacle_mask=obstacle_mask)
             for b, (s, ref) in enumerate(zip(scenes, refs)):
                 n = len(s["positions"])
                 err = np.linalg.norm(solved[torch.float32].velocities[b, :n].double().numpy() - ref, axis=-1)

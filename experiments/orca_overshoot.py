@@ -2,7 +2,7 @@
 
     python experiments/orca_overshoot.py [--scenes 3000] [--json]   # needs pyrvo (`make install`)
 
-For N = 5, 10, 20, 30, 50 agents: random ``crowd`` scenes of :mod:`crowdrl.testing` (positions
+For N = 5, 10, 20, 30, 50 agents: random ``crowd`` scenes of :mod:`crowdrl_testing` (positions
 uniform in a 10 m square, radius 0.31 m as the humans' ORCA radius, random current velocities and
 goals, max speed 1 m/s) with the humans' ORCA parameters, fixed seeds. Prints the largest speed returned by our float32 ORCA
 (:func:`crowdrl.sim.orca.orca_velocities`), by pyrvo's RVO2 (float32 C++) and by our float64
@@ -17,11 +17,11 @@ import numpy as np
 import torch
 
 from benchkit import Column, add_json_argument, emit, log
-from crowdrl.sim.orca import orca_velocities
-from crowdrl.testing import random_scene, rvo2_velocities
+from crowdrl.sim.orca import OrcaParams, orca_velocities
+from crowdrl_testing import random_scene, rvo2_velocities
 
 SIZES = (5, 10, 20, 30, 50)
-PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+PARAMS = OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
 LIMITS = {"over": 1.0 + 1e-6, "over_1.01": 1.01}  # above the limit beyond float32 rounding; by 1 %+
 
 
@@ -33,9 +33,9 @@ def measure(n: int, scenes: int, seed: int) -> dict[str, float | int]:
     speeds = {}
     for name, dtype in (("ours_f32", torch.float32), ("ours_f64", torch.float64)):
         t = {k: torch.as_tensor(v).to(dtype) for k, v in stacked.items()}
-        v = orca_velocities(**t, **PARAMS)
+        v = orca_velocities(**t, params=PARAMS)
         speeds[name] = torch.linalg.vector_norm(v.double(), dim=-1).numpy()
-    speeds["rvo2"] = np.stack([np.linalg.norm(rvo2_velocities(s, **PARAMS), axis=-1) for s in batch])
+    speeds["rvo2"] = np.stack([np.linalg.norm(rvo2_velocities(s, PARAMS), axis=-1) for s in batch])
     out: dict[str, float | int] = {"N": n, "scenes": scenes, "seed": seed}
     for name, s in speeds.items():
         out[f"max_{name}"] = float(s.max())

@@ -1,16 +1,9 @@
 """``experiments/benchkit.py``: the table and the ``--json`` object every benchmark and check prints."""
 
 import argparse
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("benchkit", ROOT / "experiments" / "benchkit.py")
-benchkit = importlib.util.module_from_spec(spec)
-sys.modules.setdefault("benchkit", benchkit)  # its dataclass looks its module up
-spec.loader.exec_module(benchkit)
+import benchkit
 
 ROWS = [{"name": "a|b", "ms": 1.23456, "n": 3, "ok": True, "extra": [1, 2]},
         {"name": "c", "ms": 12345.6, "n": None, "ok": False, "extra": []}]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -18,10 +17,9 @@ AGENT = ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0" / "best.pt"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("diagnose_timeouts", ROOT / "experiments" / "diagnose_timeouts.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    import diagnose_timeouts
+
+    return diagnose_timeouts
 
 
 def test_online_state_dict_rebuilds_the_online_network():

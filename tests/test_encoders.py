@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from crowdrl.testing import robot_centric_states
+from crowdrl_testing import robot_centric_states
 from crowdrl.models import (
     ENCODERS,
     LSTMRLEncoder,

@@ -17,7 +17,7 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.humans import human_velocities
 from crowdrl.sim.rng import episode_keys
 from crowdrl.sim.scenarios import initial_states
-from crowdrl.testing import crowd_scene_state, random_crowd_scene
+from crowdrl_testing import crowd_scene_state, random_crowd_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -137,7 +137,7 @@ def test_humans_react_to_the_robot_only_when_they_see_it_and_look_at_others():
 
 def test_the_reference_simulator_refuses_humans_it_does_not_simulate():
     pytest.importorskip("pyrvo")
-    from crowdrl.sim.reference import ReferenceCrowdSim
+    from crowdrl_testing.reference import ReferenceCrowdSim
 
     for cfg in (CrowdConfig(robot_visible=True), CrowdConfig(human_model="linear")):
         state = initial_states(cfg, episode_keys("test", 0, torch.arange(1)))

@@ -5,7 +5,7 @@ import torch
 from torchrl.data import Categorical
 from torchrl.envs import TransformedEnv
 
-from crowdrl.testing import robot_centric_states
+from crowdrl_testing import robot_centric_states
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.models import (
     ENCODERS,

@@ -12,8 +12,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crowdrl.sim.orca import orca_solve, orca_velocities
-from crowdrl.testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
+from crowdrl.sim.orca import OrcaParams, orca_solve, orca_velocities
+from crowdrl_testing import KINDS, ORCA_TOLERANCE, padded_batch, random_scene, rvo2_velocities
 
 CASES = json.load(gzip.open(Path(__file__).parent / "data" / "orca_cases.json.gz", "rt"))["cases"]
 
@@ -23,8 +23,8 @@ def _solve_case(case, dtype=torch.float32):
     t = lambda k: torch.tensor(i[k], dtype=dtype).unsqueeze(0)
     return orca_solve(
         t("positions"), t("velocities"), t("pref_velocities"), t("radius"), t("max_speed"),
-        time_step=i["time_step"], neighbor_dist=i["neighbor_dist"], max_neighbors=i["max_neighbors"],
-        time_horizon=i["time_horizon"],
+        OrcaParams(time_step=i["time_step"], neighbor_dist=i["neighbor_dist"], max_neighbors=i["max_neighbors"],
+                   time_horizon=i["time_horizon"]),
     )
 
 
@@ -54,8 +54,8 @@ def test_reference_cases_batched_with_mask_match_one_by_one():
     kept = [case for case in CASES if case["input"]["kind"] != "param_variation"]
     batch, mask = padded_batch(scenes)
     i = kept[0]["input"]
-    sol = orca_solve(**batch, mask=mask, time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
-                     max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"])
+    sol = orca_solve(**batch, mask=mask, params=OrcaParams(time_step=i["time_step"], neighbor_dist=i["neighbor_dist"],
+                                                          max_neighbors=i["max_neighbors"], time_horizon=i["time_horizon"]))
     for b, case in enumerate(kept):
         n = len(case["input"]["positions"])
         one = _solve_case(case).velocities[0]
@@ -85,7 +85,7 @@ def test_fresh_random_scenes_agree_with_rvo2(kind):
     refs = [rvo2_velocities(s) for s in scenes]
     batch32, mask = padded_batch(scenes)
     batch64, _ = padded_batch(scenes, torch.float64)
-    params = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0, mask=mask)
+    params = dict(params=OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0), mask=mask)
     v32 = orca_solve(**batch32, **params)
     v64 = orca_solve(**batch64, **params).velocities
     n_agents = n_sensitive = n_fallback = 0
@@ -120,7 +120,7 @@ def test_no_neighbours_returns_clipped_preferred_velocity():
     pos = torch.tensor([[[0.0, 0.0], [20.0, 0.0]]])
     pref = torch.tensor([[[3.0, 4.0], [0.3, 0.0]]])
     v = orca_velocities(pos, torch.zeros_like(pos), pref, torch.full((1, 2), 0.3), torch.ones(1, 2),
-                        time_step=0.25, neighbor_dist=10, max_neighbors=10, time_horizon=5)
+                        OrcaParams(time_step=0.25, neighbor_dist=10, max_neighbors=10, time_horizon=5))
     torch.testing.assert_close(v, torch.tensor([[[0.6, 0.8], [0.3, 0.0]]]))
 
 
@@ -128,7 +128,7 @@ def test_single_agent_and_zero_max_neighbors():
     pos = torch.zeros(2, 1, 2)
     pref = torch.tensor([[[0.5, 0.0]], [[0.0, 2.0]]])
     v = orca_velocities(pos, pos, pref, torch.full((2, 1), 0.3), torch.ones(2, 1),
-                        time_step=0.25, neighbor_dist=10, max_neighbors=0, time_horizon=5)
+                        OrcaParams(time_step=0.25, neighbor_dist=10, max_neighbors=0, time_horizon=5))
     torch.testing.assert_close(v, torch.tensor([[[0.5, 0.0]], [[0.0, 1.0]]]))
 
 
@@ -155,7 +155,7 @@ def test_velocities_are_finite_and_within_max_speed(scene):
     float32 wherever float32 and float64 agree.
     """
     n = len(scene[0])
-    kw = dict(time_step=0.25, neighbor_dist=10, max_neighbors=10, time_horizon=5)
+    kw = dict(params=OrcaParams(time_step=0.25, neighbor_dist=10, max_neighbors=10, time_horizon=5))
     out = {}
     for dtype in (torch.float32, torch.float64):
         pos, vel, pref = (torch.tensor(a, dtype=torch.float32).to(dtype).unsqueeze(0) for a in scene)
@@ -183,7 +183,7 @@ def test_feasible_pairs_do_not_interpenetrate(scene):
         return
     dt = 0.25
     sol = orca_solve(pos, vel, pref, torch.full((1, n), r, dtype=pos.dtype), torch.ones(1, n, dtype=pos.dtype),
-                     time_step=dt, neighbor_dist=10, max_neighbors=10, time_horizon=5)
+                     OrcaParams(time_step=dt, neighbor_dist=10, max_neighbors=10, time_horizon=5))
     new_pos = pos + sol.velocities * dt
     d1 = torch.cdist(new_pos[0], new_pos[0]) + torch.eye(n, dtype=pos.dtype) * 10
     feasible = ~sol.lp_infeasible[0]
@@ -214,16 +214,16 @@ def test_bad_tensor_shapes_and_dtypes_name_the_argument(index, bad, word):
     args = list(_args())
     args[index] = bad
     with pytest.raises((ValueError, TypeError), match=word):
-        orca_velocities(*args, **KW)
+        orca_velocities(*args, OrcaParams(**KW))
 
 
 @pytest.mark.parametrize("key, value", [("time_step", 0.0), ("time_horizon", -1.0), ("max_neighbors", -1),
                                         ("neighbor_dist", -2.0)])
 def test_bad_parameters_name_the_parameter(key, value):
     with pytest.raises(ValueError, match=key):
-        orca_velocities(*_args(), **{**KW, key: value})
+        orca_velocities(*_args(), OrcaParams(**{**KW, key: value}))
 
 
 def test_bad_mask_is_rejected():
     with pytest.raises(ValueError, match="mask"):
-        orca_velocities(*_args(), **KW, mask=torch.ones(2, 3))
+        orca_velocities(*_args(), OrcaParams(**KW), mask=torch.ones(2, 3))

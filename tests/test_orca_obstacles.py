@@ -4,6 +4,7 @@ and the no-obstacle path kept bit-identical to before obstacles existed."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,8 @@ import pytest
 import torch
 
 from crowdrl.sim.obstacles import ObstacleEdges, process_obstacles
-from crowdrl.sim.orca import orca_solve, orca_velocities
-from crowdrl.testing import (
+from crowdrl.sim.orca import OrcaParams, orca_solve, orca_velocities
+from crowdrl_testing import (
     OBSTACLE_KINDS,
     ORCA_TOLERANCE,
     padded_batch,
@@ -21,7 +22,7 @@ from crowdrl.testing import (
     rvo2_velocities,
 )
 
-PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+PARAMS = OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
 BASELINE = Path(__file__).parent / "data" / "orca_no_obstacle_baseline.npz"
 AGENT_KEYS = ("positions", "velocities", "pref_velocities", "radius", "max_speed")
 
@@ -51,7 +52,7 @@ def test_no_obstacles_bit_identical_to_before_obstacles():
             empty = dict(obstacles=torch.zeros(B, 2, 3, 2, dtype=dtype),
                          obstacle_mask=torch.zeros(B, 2, 3, dtype=torch.bool))
             for extra in ({}, empty):
-                sol = orca_solve(**args, mask=m, **PARAMS, **extra)
+                sol = orca_solve(**args, params=PARAMS, mask=m, **extra)
                 for field in ("velocities", "lp_infeasible", "num_neighbors"):
                     want = torch.from_numpy(data[f"{kind}/{tag}/{field}"])
                     got = getattr(sol, field)
@@ -68,8 +69,8 @@ def test_no_obstacles_bit_identical_to_before_obstacles():
 def _solve(scenes, dtype, tho, **kw):
     batch, mask = padded_batch(scenes, dtype)
     obstacles, obstacle_mask = padded_obstacles(scenes, dtype)
-    return orca_solve(**batch, mask=mask, obstacles=obstacles, obstacle_mask=obstacle_mask,
-                      time_horizon_obst=tho, **PARAMS, **kw), mask
+    return orca_solve(**batch, params=replace(PARAMS, time_horizon_obst=tho), mask=mask, obstacles=obstacles,
+                      obstacle_mask=obstacle_mask, **kw), mask
 
 
 @pytest.mark.parametrize("kind", OBSTACLE_KINDS)
@@ -80,7 +81,7 @@ def test_fresh_obstacle_scenes_agree_with_rvo2(kind, tho):
     pytest.importorskip("pyrvo")
     gen = np.random.default_rng(4321 + 10 * OBSTACLE_KINDS.index(kind) + int(tho))
     scenes = [random_obstacle_scene(gen, kind) for _ in range(40)]
-    refs = [rvo2_velocities(s, **PARAMS, time_horizon_obst=tho) for s in scenes]
+    refs = [rvo2_velocities(s, replace(PARAMS, time_horizon_obst=tho)) for s in scenes]
     s32, mask = _solve(scenes, torch.float32, tho)
     v64 = _solve(scenes, torch.float64, tho)[0].velocities
     n_agents = n_within = n_sensitive = 0
@@ -112,14 +113,14 @@ def test_obstacle_line_counts_match_rvo2():
     sol, _ = _solve(scenes, torch.float32, 3.0)
     checked = 0
     for b, s in enumerate(scenes):
-        sim = pyrvo.RVOSimulator(PARAMS["time_step"], PARAMS["neighbor_dist"], PARAMS["max_neighbors"],
-                                 PARAMS["time_horizon"], 3.0, 0.3, 1.0)
+        sim = pyrvo.RVOSimulator(PARAMS.time_step, PARAMS.neighbor_dist, PARAMS.max_neighbors, PARAMS.time_horizon, 3.0,
+                                 0.3, 1.0)
         for polygon in s["obstacles"]:
             sim.add_obstacle([tuple(map(float, v)) for v in polygon])
         sim.process_obstacles()
         for p, v, r, m, pv in zip(s["positions"], s["velocities"], s["radius"], s["max_speed"], s["pref_velocities"]):
-            i = sim.add_agent(tuple(map(float, p)), PARAMS["neighbor_dist"], PARAMS["max_neighbors"],
-                              PARAMS["time_horizon"], 3.0, float(r), float(m), tuple(map(float, v)))
+            i = sim.add_agent(tuple(map(float, p)), PARAMS.neighbor_dist, PARAMS.max_neighbors, PARAMS.time_horizon, 3.0,
+                              float(r), float(m), tuple(map(float, v)))
             sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
         sim.do_step()
         for i in range(len(s["positions"])):
@@ -159,7 +160,7 @@ def test_wall_ahead_limits_the_normal_speed():
     pos = torch.tensor([[[0.0, -1.0]]])
     wall = torch.tensor([[[[-5.0, 0.0], [5.0, 0.0]]]])
     v = orca_velocities(pos, torch.zeros_like(pos), torch.tensor([[[0.0, 1.0]]]), torch.full((1, 1), 0.3),
-                        torch.ones(1, 1), **PARAMS, obstacles=wall, time_horizon_obst=2.0)
+                        torch.ones(1, 1), replace(PARAMS, time_horizon_obst=2.0), obstacles=wall)
     torch.testing.assert_close(v, torch.tensor([[[0.0, 0.35]]]))
 
 
@@ -175,7 +176,7 @@ def test_padding_batching_and_preprocessing_do_not_change_the_answer():
     big = torch.full((B, P + 2, V + 3, 2), float("nan"))  # masked vertices may hold anything
     big_mask = torch.zeros(B, P + 2, V + 3, dtype=torch.bool)
     big[:, 1:P + 1, :V], big_mask[:, 1:P + 1, :V] = obstacles, obstacle_mask
-    kw = dict(mask=mask, time_horizon_obst=3.0, **PARAMS)
+    kw = dict(params=replace(PARAMS, time_horizon_obst=3.0), mask=mask)
     padded = orca_solve(**batch, obstacles=obstacles, obstacle_mask=obstacle_mask, **kw)
     bigger = orca_solve(**batch, obstacles=big, obstacle_mask=big_mask, **kw)
     edges = process_obstacles(obstacles, obstacle_mask)
@@ -193,7 +194,7 @@ def test_padding_batching_and_preprocessing_do_not_change_the_answer():
         om = torch.zeros(1, len(polys), v, dtype=torch.bool)
         for p, poly in enumerate(polys):
             obs[0, p, :len(poly)], om[0, p, :len(poly)] = torch.as_tensor(poly), True
-        alone = orca_solve(**one, obstacles=obs, obstacle_mask=om, time_horizon_obst=3.0, **PARAMS)
+        alone = orca_solve(**one, params=replace(PARAMS, time_horizon_obst=3.0), obstacles=obs, obstacle_mask=om)
         assert torch.equal(_bits(alone.velocities[0]), _bits(padded.velocities[b, :n])), b
         # absent agents keep their velocity and have no obstacle lines
         assert torch.equal(padded.velocities[b, n:], batch["velocities"][b, n:])
@@ -236,7 +237,7 @@ def test_bad_polygons_name_the_argument_and_the_polygon(polygons, mask, words):
     obstacles = torch.tensor([polygons])
     obstacle_mask = None if mask is None else torch.tensor([mask])
     for call in (lambda: process_obstacles(obstacles, obstacle_mask),
-                 lambda: orca_velocities(*_agents(), **PARAMS, obstacles=obstacles, obstacle_mask=obstacle_mask)):
+                 lambda: orca_velocities(*_agents(), PARAMS, obstacles=obstacles, obstacle_mask=obstacle_mask)):
         with pytest.raises(ValueError) as info:
             call()
         for word in words:
@@ -245,8 +246,8 @@ def test_bad_polygons_name_the_argument_and_the_polygon(polygons, mask, words):
 
 def test_clockwise_walls_are_fine():
     """Two vertices are a wall, seen from both sides: their order does not matter."""
-    a = orca_velocities(*_agents(), **PARAMS, obstacles=torch.tensor([[[[0.0, -1.0], [0.0, 1.0]]]]))
-    b = orca_velocities(*_agents(), **PARAMS, obstacles=torch.tensor([[[[0.0, 1.0], [0.0, -1.0]]]]))
+    a = orca_velocities(*_agents(), PARAMS, obstacles=torch.tensor([[[[0.0, -1.0], [0.0, 1.0]]]]))
+    b = orca_velocities(*_agents(), PARAMS, obstacles=torch.tensor([[[[0.0, 1.0], [0.0, -1.0]]]]))
     assert torch.isfinite(a).all() and torch.isfinite(b).all()
 
 
@@ -266,12 +267,14 @@ def test_clockwise_walls_are_fine():
     ],
 )
 def test_bad_obstacle_arguments_name_the_argument(kw, word, error):
+    kw = dict(kw)
+    tho = kw.pop("time_horizon_obst", None)
     with pytest.raises(error, match=word):
-        orca_velocities(*_agents(), **PARAMS, **kw)
+        orca_velocities(*_agents(), replace(PARAMS, time_horizon_obst=tho), **kw)
 
 
 def test_processed_obstacles_on_another_device_are_rejected():
     edges = process_obstacles(torch.tensor([[SQUARE]]))
     on_meta = ObstacleEdges(*(t.to("meta") for t in edges))
     with pytest.raises(ValueError, match="obstacles is on meta"):
-        orca_velocities(*_agents(), **PARAMS, obstacles=on_meta)
+        orca_velocities(*_agents(), PARAMS, obstacles=on_meta)

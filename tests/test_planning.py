@@ -297,7 +297,7 @@ def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_plann
     """Killed mid-update at frame 224, resumed: the same Q weights, predictor weights and
     optimizer states, test metrics and logged rows as the run never stopped; best.pt carries the
     predictor and the test goes through the planner."""
-    from crowdrl.testing import train_until_killed
+    from crowdrl_testing import train_until_killed
     from crowdrl.training.checkpoint import load_checkpoint
     from crowdrl.training.pipeline import evaluate_spec, run_training
 

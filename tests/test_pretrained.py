@@ -68,17 +68,8 @@ def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
         assert got[key] == pytest.approx(want[key], rel=1e-3), key
 
 
-def _check_pretrained():
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import check_pretrained
-    finally:
-        sys.path.remove(str(ROOT / "experiments"))
-    return check_pretrained
-
-
 def test_check_pretrained_tells_an_identical_record_from_a_moved_one():
-    compare = _check_pretrained().compare
+    from check_pretrained import compare
     want = json.loads((AGENTS[0] / "eval.json").read_text())[0]
     same = compare(want, dict(want))
     assert same["identical"] and same["max_rel_diff"] == 0 and same["outcomes_moved"] == 0

@@ -1,4 +1,4 @@
-"""The batched torch simulator against the plain RVO2-based reference (:mod:`crowdrl.sim.reference`).
+"""The batched torch simulator against the plain RVO2-based reference (:mod:`crowdrl_testing.reference`).
 
 The obstacle scenarios (corridor, doorway, room) are compared further down, with their own
 tolerances. The open scenarios (circle, square), N = 10, 8 test-split episodes of seed 0, 40 steps. Episodes 0-3 follow a fixed
@@ -32,7 +32,7 @@ Tolerances:
   a human 0.2 m +- 4e-5 from the robot). Everything is seeded, so the test is deterministic.
 
 New goals of non-stop humans come from the batched simulator through the reference's
-``new_goal_fn`` callback (the same goal at the same step), see :mod:`crowdrl.sim.reference`.
+``new_goal_fn`` callback (the same goal at the same step), see :mod:`crowdrl_testing.reference`.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ pytest.importorskip("pyrvo")
 from crowdrl.sim import crowd  # noqa: E402
 from crowdrl.sim.config import CrowdConfig  # noqa: E402
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, unicycle_step  # noqa: E402
-from crowdrl.sim.reference import (  # noqa: E402
+from crowdrl_testing.reference import (  # noqa: E402
     COLLISION,
     EVENT_NAMES,
     RUNNING,
@@ -383,7 +383,7 @@ def test_reference_refuses_other_obstacles():
 @pytest.mark.parametrize("scenario", ["corridor", "doorway", "room"])
 def test_reference_obstacle_scenarios_run_alone(scenario):
     """Without a callback the reference draws new goals itself, reachable in a straight line."""
-    from crowdrl.sim.reference import point_to_segment_dist, polygon_edges, segment_distance  # noqa: PLC0415
+    from crowdrl_testing.reference import point_to_segment_dist, polygon_edges, segment_distance  # noqa: PLC0415
 
     cfg = CrowdConfig(scenario=scenario, num_humans=5)
     state = initial_states(cfg, episode_keys("test", 0, torch.arange(1)))

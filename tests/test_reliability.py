@@ -275,7 +275,7 @@ def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrup
     """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
     resumed by a new trainer: the same final weights (online, target, optimizer), the same test
     metrics and the same logged rows (time columns aside) as the run that was never stopped."""
-    from crowdrl.testing import train_until_killed
+    from crowdrl_testing import train_until_killed
     from crowdrl.training.pipeline import run_training
 
     run = _exact_run(name)

@@ -308,12 +308,7 @@ def test_episodes_budget_is_the_papers_episodes_at_the_demos_update_ratio(explor
     from hydra.core.config_store import ConfigStore
     from crowdrl.training.config import RunConfig
 
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("reproduce_script", ROOT / "experiments" / "reproduce.py")
-    script = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = script  # its dataclasses look their module up
-    spec.loader.exec_module(script)
+    import reproduce as script
     assert "episodes" in script.BUDGETS
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):

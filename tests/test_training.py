@@ -372,7 +372,7 @@ def test_compiled_acting_equals_eager_and_shares_the_parameters():
 
 
 def test_compiled_module_draws_dropout_from_torchs_generator():
-    from crowdrl.models.lazy_compile import CompiledModule
+    from crowdrl.compile import CompiledModule
 
     net = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Dropout(0.5), torch.nn.Linear(16, 3)).train()
     fast, x = CompiledModule(net, what="a dropout net"), torch.randn(8, 5)

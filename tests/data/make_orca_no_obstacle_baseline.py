@@ -1,9 +1,10 @@
 """Makes orca_no_obstacle_baseline.npz: orca_solve's outputs at commit c377921 (before obstacle ORCA) on
-random padded scenes, the fixture that keeps the no-obstacle path bit-identical (run from the repo root)."""
+random padded scenes, the fixture that keeps the no-obstacle path bit-identical (run from the repo root:
+``PYTHONPATH=experiments python tests/data/make_orca_no_obstacle_baseline.py``)."""
 import numpy as np
 import torch
-from crowdrl.sim.orca import orca_solve
-from crowdrl.testing import KINDS, padded_batch, random_scene
+from crowdrl.sim.orca import OrcaParams, orca_solve
+from crowdrl_testing import KINDS, padded_batch, random_scene
 torch.set_num_threads(1)
 out = {}
 gen = np.random.default_rng(20240)
@@ -18,7 +19,7 @@ for kind in KINDS:
             if not use_mask and kind != "crowd":
                 continue
             sol = orca_solve(**{k: v.to(dt) for k, v in batch.items()}, mask=mask if use_mask else None,
-                             time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+                             params=OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0))
             tag = f"{kind}/{str(dt)[6:]}_{'mask' if use_mask else 'nomask'}"
             out[f"{tag}/velocities"] = sol.velocities.numpy()
             out[f"{tag}/lp_infeasible"] = sol.lp_infeasible.numpy()

@@ -48,7 +48,7 @@ class CrowdNavEnv(EnvBase):
     the time limit truncates.
 
     ``orca_backend="compiled"`` steps the humans with the ``torch.compile`` ORCA of
-    :mod:`crowdrl.sim.fast` (same numbers; compiles for minutes on first use per batch shape).
+    :mod:`crowdrl.sim.orca_compiled` (same numbers; compiles for minutes on first use per batch shape).
 
     Episodes come from the ``split`` stream (``train``, ``val`` or ``test``) of ``seed``:
     each (partial) reset takes the next episode ids in sub-env order, unless episodes were

@@ -33,17 +33,13 @@ paper's ``σ0 / sqrt(p)``) but ``sigma_b = std_init / sqrt(out_features)``; the 
 instead of 0.044). ``mu ~ U[-1/sqrt(p), 1/sqrt(p)]`` as in torchrl and the paper.
 
 Online vs target copies. The noise samples ``weight_epsilon``/``bias_epsilon`` are buffers, so
-``state_dict``/``load_state_dict`` carry them (two nets then agree exactly, which is what a
-checkpoint round trip wants). torchrl's ``HardUpdate`` copies only *parameters* (tensors with
-``requires_grad``) into ``loss.target_value_network_params``; the target's epsilon buffers are
-copied once when the loss is built and then never touched, and ``loss.apply(reset_noise)`` does
-not reach them (nor the online layers: a loss keeps its network outside its child modules).
-:func:`reset_noise` given a torchrl ``LossModule`` therefore resamples the online layers *and*
-each target parameter set's epsilons, so the target noise is an independent fresh sample every
-update and never depends on what HardUpdate copied. A loss that holds the online net and a deep
-copy as child modules (``crowdrl.training.loss.D3QNLoss``: ``net``, ``target_net``; its
-``update_target`` copies buffers too) is covered by the plain module walk: each copy gets its own
-sample.
+``state_dict``/``load_state_dict`` carry them (a checkpoint round trip restores them exactly).
+:func:`reset_noise` on crowdrl's loss (``crowdrl.training.loss.D3QNLoss``: ``net`` and
+``target_net`` child modules) walks both copies, each getting its own sample. On a torchrl
+``LossModule`` it also reaches what that keeps outside its child modules: the online network and
+the epsilons of each ``target_<name>_params`` (torchrl's ``HardUpdate`` copies parameters only,
+and ``loss.apply(reset_noise)`` reaches neither), so the target noise is a fresh sample every
+update there too.
 """
 
 from __future__ import annotations

@@ -15,10 +15,10 @@ Every normaliser folds the batch it is given into its statistics *before* normal
 first batch is scaled by its own moments. Statistics are buffers (saved in ``state_dict``).
 
 Why not ``torchrl.envs.transforms.RunningMeanStd`` (torchrl 0.14): it starts from a pseudo-count
-(``epsilon=1e-4``) at mean 0 and variance 1, so its moments are not those of the stream: after one
-batch of 32 values of std 10⁻³ its variance is 5× theirs (14× after 4 values), float32, whereas the
-tests here hold these statistics equal to numpy's over everything seen; and its buffers differ from
-the ones the checkpoints of intrinsic runs already hold.
+(``epsilon=1e-4``) at mean 0 and variance 1, so its moments are not those of the stream (far off
+for a stream of small variance, docs/benchmarks.md), float32, whereas the tests here hold these
+statistics equal to numpy's over everything seen; and its buffers differ from the ones the
+checkpoints of intrinsic runs hold.
 
 >>> norm = RewardNormalizer(scale="std", center=True, clip=5.0)
 >>> r = norm(torch.tensor([1.0, 2.0, 3.0]))  # zero mean, unit std over what was seen

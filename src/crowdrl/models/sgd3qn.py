@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
-from crowdrl.models.lazy_compile import LazyCompiled
+from crowdrl.compile import LazyCompiled
 from crowdrl.models.mlp import mlp
 from crowdrl.models.registry import register_encoder
 

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import human_preferred_velocity
-from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.orca import OrcaParams, orca_solve
 
 
 class OrcaRobotPolicy(TensorDictModuleBase):
@@ -68,11 +68,8 @@ class OrcaRobotPolicy(TensorDictModuleBase):
         if humans_mask is not None and not bool(humans_mask.all()):
             mask = torch.cat((torch.ones_like(humans_mask[:, :1]), humans_mask), dim=1)
         sol = orca_solve(
-            positions, velocities, pref, radius, max_speed,
-            time_step=cfg.time_step, neighbor_dist=cfg.orca_neighbor_dist,
-            max_neighbors=cfg.orca_max_neighbors, time_horizon=cfg.orca_time_horizon, mask=mask,
+            positions, velocities, pref, radius, max_speed, OrcaParams.from_config(cfg), mask=mask,
             obstacles=obstacles, obstacle_mask=None if obstacles is None else obstacles_mask,
-            time_horizon_obst=cfg.orca_time_horizon_obst,
         )
         return sol.velocities[:, 0]
 

@@ -15,7 +15,7 @@ OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdr
 OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
                  "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
 LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
-ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.fast (torch.compile, minutes to build)
+ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.orca_compiled (torch.compile, minutes to build)
 HUMAN_MODELS = ("orca", "social_force", "linear")  # how the humans move (crowdrl.sim.humans)
 # CrowdConfig's keys of the humans' model (the Hydra env group's keys of the same names)
 HUMAN_KEYS = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps")

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.obstacles import ObstacleEdges
-from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.orca import OrcaParams, orca_solve
 from crowdrl.sim.social_force import social_force_velocities
 from crowdrl.sim.state import CrowdState
 
@@ -57,7 +57,7 @@ def preferred_velocities(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Te
     """Preferred velocities ``[..., 2]`` of humans at ``position`` heading for ``goal`` (``[..., 2]``):
     :func:`human_preferred_velocity` towards the goal; in ``doorway`` the same speed, towards
     :func:`doorway_waypoints` (the gap) while the wall is between a human and its goal. A pure
-    function (the reference simulator calls it too, :mod:`crowdrl.sim.reference`)."""
+    function (the reference simulator of the tests calls it too, ``experiments/crowdrl_testing/reference.py``)."""
     pref = human_preferred_velocity(position, goal)
     if cfg.scenario != "doorway":
         return pref
@@ -95,7 +95,7 @@ def orca_humans(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdg
     With obstacles in the state (``state.obstacles``, ``P > 0``) the humans' ORCA sees them too,
     with ``cfg.orca_time_horizon_obst``."""
     if cfg.orca_backend == "compiled":
-        from crowdrl.sim.fast import compiled_orca_solve as solve
+        from crowdrl.sim.orca_compiled import compiled_orca_solve as solve
     else:
         solve = orca_solve
     B, N = state.batch_size, state.num_humans
@@ -115,10 +115,7 @@ def orca_humans(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdg
             mask = _with_robot(mask, mask.new_ones(B))
     sol = solve(
         position, velocity, pref, radius, max_speed,
-        time_step=cfg.time_step,
-        neighbor_dist=cfg.orca_neighbor_dist,
-        max_neighbors=cfg.orca_max_neighbors,
-        time_horizon=cfg.orca_time_horizon,
+        OrcaParams.from_config(cfg),
         mask=mask,
         **_orca_obstacles(cfg, state, obstacle_edges),
     )
@@ -130,9 +127,8 @@ def _orca_obstacles(cfg: CrowdConfig, state: CrowdState, edges: ObstacleEdges | 
     if not state.has_obstacles:
         return {}
     if edges is not None:
-        return {"obstacles": edges, "time_horizon_obst": cfg.orca_time_horizon_obst}
-    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask,
-            "time_horizon_obst": cfg.orca_time_horizon_obst}
+        return {"obstacles": edges}
+    return {"obstacles": state.obstacles, "obstacle_mask": state.obstacle_mask}
 
 
 def social_force_humans(cfg: CrowdConfig, state: CrowdState) -> Tensor:

@@ -32,13 +32,14 @@ the running result either.
 Bit-level fidelity to RVO2 (float32): square roots are correctly rounded (ATen's CPU ``sqrt``
 is not; see :func:`_sqrt`), Vector2 divisions multiply by the reciprocal as RVO2 does, and
 neighbour ties go by agent index. Selections use a branch-free bitwise select on large
-tensors (ATen's CPU ``where`` mispredicts on irregular masks). :mod:`crowdrl.sim.fast` is a
+tensors (ATen's CPU ``where`` mispredicts on irregular masks). :mod:`crowdrl.sim.orca_compiled` is a
 compiled backend computing the same thing.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -47,8 +48,57 @@ from crowdrl.sim.obstacles import ObstacleEdges, process_obstacles
 
 RVO_EPSILON = 1e-5  # RVO2's RVO_EPSILON (float)
 
-__all__ = ["OrcaSolution", "orca_velocities", "orca_solve", "require_finite", "prepare_obstacles", "ObstacleEdges",
-           "process_obstacles", "RVO_EPSILON"]
+__all__ = ["OrcaParams", "OrcaSolution", "orca_velocities", "orca_solve", "require_finite", "prepare_obstacles",
+           "ObstacleEdges", "process_obstacles", "RVO_EPSILON"]
+
+
+@dataclass(frozen=True)
+class OrcaParams:
+    """ORCA's constants, RVO2's simulator parameters, the same for every agent of a solve: the one
+    argument of :func:`orca_velocities`, :func:`orca_solve` and the compiled backend's
+    :func:`~crowdrl.sim.orca_compiled.compiled_orca_solve` that is not a tensor of the scene.
+
+    time_step: simulation step (the collision branch's cut-off is ``1/time_step``).
+    neighbor_dist: only agents strictly closer than this are neighbours.
+    max_neighbors: at most this many nearest neighbours give ORCA lines.
+    time_horizon: ORCA time horizon towards other agents.
+    time_horizon_obst: ORCA time horizon towards obstacles (RVO2's ``timeHorizonObst``); an edge is
+        an obstacle neighbour within ``time_horizon_obst * max_speed + radius``. ``None``:
+        ``time_horizon`` (:attr:`obstacle_horizon`). Unused without obstacles.
+
+    A non-positive time step or horizon, a negative neighbour distance or count are refused
+    (``ValueError`` naming the field).
+    """
+
+    time_step: float
+    neighbor_dist: float
+    max_neighbors: int
+    time_horizon: float
+    time_horizon_obst: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.time_step > 0:
+            raise ValueError(f"time_step must be > 0, got {self.time_step}")
+        if not self.time_horizon > 0:
+            raise ValueError(f"time_horizon must be > 0, got {self.time_horizon}")
+        if not self.neighbor_dist >= 0:
+            raise ValueError(f"neighbor_dist must be >= 0, got {self.neighbor_dist}")
+        if int(self.max_neighbors) != self.max_neighbors or self.max_neighbors < 0:
+            raise ValueError(f"max_neighbors must be a non-negative integer, got {self.max_neighbors}")
+        if not self.obstacle_horizon > 0:
+            raise ValueError(f"time_horizon_obst must be > 0, got {self.time_horizon_obst}")
+
+    @property
+    def obstacle_horizon(self) -> float:
+        """The time horizon towards obstacles: ``time_horizon_obst``, or ``time_horizon`` if ``None``."""
+        return self.time_horizon if self.time_horizon_obst is None else self.time_horizon_obst
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> OrcaParams:
+        """The humans' ORCA constants of a :class:`~crowdrl.sim.config.CrowdConfig` (its ``time_step``
+        and ``orca_*`` fields)."""
+        return cls(cfg.time_step, cfg.orca_neighbor_dist, cfg.orca_max_neighbors, cfg.orca_time_horizon,
+                   cfg.orca_time_horizon_obst)
 
 
 class OrcaSolution(NamedTuple):
@@ -122,14 +172,13 @@ def check_orca_inputs(
     radius: Tensor,
     max_speed: Tensor,
     mask: Tensor | None,
-    time_step: float,
-    neighbor_dist: float,
-    max_neighbors: int,
-    time_horizon: float,
+    params: OrcaParams,
 ) -> None:
     """Refuse what :func:`orca_solve` and the compiled path cannot take, naming the argument: wrong
-    shapes, devices or dtypes (``TypeError``), a non-positive time step or horizon, a negative
-    neighbour distance or count, non-finite values."""
+    shapes, devices or dtypes (``TypeError``), ``params`` that are not :class:`OrcaParams` (which
+    validate themselves), non-finite values."""
+    if not isinstance(params, OrcaParams):
+        raise TypeError(f"params must be OrcaParams, got {type(params).__name__}")
     if positions.dim() != 3 or positions.shape[-1] != 2:
         raise ValueError(f"positions must be shaped [B, N, 2], got {tuple(positions.shape)}")
     if not positions.is_floating_point():
@@ -153,14 +202,6 @@ def check_orca_inputs(
             raise ValueError(f"{name} is on {t.device} but positions is on {positions.device}")
         if name != "mask" and t.dtype != positions.dtype:
             raise TypeError(f"{name} has dtype {t.dtype} but positions has {positions.dtype}")
-    if not time_step > 0:
-        raise ValueError(f"time_step must be > 0, got {time_step}")
-    if not time_horizon > 0:
-        raise ValueError(f"time_horizon must be > 0, got {time_horizon}")
-    if not neighbor_dist >= 0:
-        raise ValueError(f"neighbor_dist must be >= 0, got {neighbor_dist}")
-    if int(max_neighbors) != max_neighbors or max_neighbors < 0:
-        raise ValueError(f"max_neighbors must be a non-negative integer, got {max_neighbors}")
     require_finite(positions=positions, velocities=velocities, pref_velocities=pref_velocities, radius=radius,
                    max_speed=max_speed)
 
@@ -567,18 +608,13 @@ def prepare_obstacles(
     positions: Tensor,
     obstacles: Tensor | ObstacleEdges | None,
     obstacle_mask: Tensor | None,
-    time_horizon_obst: float | None,
-    time_horizon: float,
-) -> tuple[ObstacleEdges | None, float]:
+) -> ObstacleEdges | None:
     """Validate the obstacle arguments of :func:`orca_solve` against the agents' ``positions``;
-    returns the processed edges (``None`` without obstacles) and the obstacle time horizon."""
-    tho = time_horizon if time_horizon_obst is None else time_horizon_obst
-    if not tho > 0:
-        raise ValueError(f"time_horizon_obst must be > 0, got {time_horizon_obst}")
+    returns the processed edges (``None`` without obstacles)."""
     if obstacles is None:
         if obstacle_mask is not None:
             raise ValueError("obstacle_mask is given but obstacles is None")
-        return None, tho
+        return None
     B = positions.shape[0]
     if isinstance(obstacles, ObstacleEdges):
         if obstacle_mask is not None:
@@ -596,7 +632,7 @@ def prepare_obstacles(
         raise TypeError(f"obstacles has dtype {edges.start.dtype} but positions has {positions.dtype}")
     if edges.start.shape[0] != B:
         raise ValueError(f"obstacles has {edges.start.shape[0]} scenes but positions has {B}")
-    return edges, tho
+    return edges
 
 
 def orca_solve(
@@ -605,25 +641,19 @@ def orca_solve(
     pref_velocities: Tensor,
     radius: Tensor,
     max_speed: Tensor,
+    params: OrcaParams,
     *,
-    time_step: float,
-    neighbor_dist: float,
-    max_neighbors: int,
-    time_horizon: float,
     mask: Tensor | None = None,
     obstacles: Tensor | ObstacleEdges | None = None,
     obstacle_mask: Tensor | None = None,
-    time_horizon_obst: float | None = None,
 ) -> OrcaSolution:
     """ORCA new velocities with diagnostics; see :func:`orca_velocities` for the arguments."""
-    check_orca_inputs(
-        positions, velocities, pref_velocities, radius, max_speed, mask,
-        time_step, neighbor_dist, max_neighbors, time_horizon,
-    )
-    edges, tho = prepare_obstacles(positions, obstacles, obstacle_mask, time_horizon_obst, time_horizon)
+    check_orca_inputs(positions, velocities, pref_velocities, radius, max_speed, mask, params)
+    edges = prepare_obstacles(positions, obstacles, obstacle_mask)
+    tho = params.obstacle_horizon
     B, N, _ = positions.shape
     A = B * N
-    flat, valid = _neighbor_table(positions, mask, neighbor_dist, max_neighbors)
+    flat, valid = _neighbor_table(positions, mask, params.neighbor_dist, params.max_neighbors)
     K = flat.shape[0]
     n_obst_lines = None
     O = 0
@@ -649,7 +679,7 @@ def orca_solve(
         rx, ry, failed = start_x, start_y, torch.zeros_like(outside)
     else:
         if K > 0:
-            dx, dy, qx, qy = _lines_t(positions, velocities, radius, flat, time_step, time_horizon)
+            dx, dy, qx, qy = _lines_t(positions, velocities, radius, flat, params.time_step, params.time_horizon)
             keep = valid
         if O > 0:  # obstacle lines first (RVO2's numObstLines)
             if K > 0:
@@ -681,25 +711,19 @@ def orca_velocities(
     pref_velocities: Tensor,
     radius: Tensor,
     max_speed: Tensor,
+    params: OrcaParams,
     *,
-    time_step: float,
-    neighbor_dist: float,
-    max_neighbors: int,
-    time_horizon: float,
     mask: Tensor | None = None,
     obstacles: Tensor | ObstacleEdges | None = None,
     obstacle_mask: Tensor | None = None,
-    time_horizon_obst: float | None = None,
 ) -> Tensor:
     """The velocities RVO2 computes in one ``doStep`` for a batch of scenes.
 
     Args:
         positions, velocities, pref_velocities: ``[B, N, 2]`` current state and preferences.
         radius, max_speed: ``[B, N]`` per-agent radius and speed limit.
-        time_step: simulation step (the collision branch's cut-off is ``1/time_step``).
-        neighbor_dist: only agents strictly closer than this are neighbours.
-        max_neighbors: at most this many nearest neighbours give ORCA lines.
-        time_horizon: ORCA time horizon towards other agents.
+        params: the constants (:class:`OrcaParams`: time step, neighbour distance and count, time
+            horizons towards agents and obstacles).
         mask: optional ``[B, N]`` bool, ``False`` marks an absent agent: it is nobody's neighbour
             and its velocity is returned unchanged.
         obstacles: optional static obstacles, RVO2 polygons ``[B, P, V, 2]`` (counter-clockwise
@@ -709,16 +733,9 @@ def orca_velocities(
             once, not on every step). ``None``: open space, exactly as before obstacles existed.
         obstacle_mask: ``[B, P, V]`` bool with polygon tensors: polygon ``(b, p)`` has the vertices
             ``obstacle_mask[b, p]`` marks, valid ones first; all-false is no polygon. ``None``: all valid.
-        time_horizon_obst: ORCA time horizon towards obstacles (RVO2's ``timeHorizonObst``); an
-            edge is an obstacle neighbour within ``time_horizon_obst * max_speed + radius``.
-            ``None``: ``time_horizon``.
 
     Returns:
         ``[B, N, 2]`` new velocities, the dtype and device of the inputs.
     """
-    return orca_solve(
-        positions, velocities, pref_velocities, radius, max_speed,
-        time_step=time_step, neighbor_dist=neighbor_dist, max_neighbors=max_neighbors,
-        time_horizon=time_horizon, mask=mask, obstacles=obstacles, obstacle_mask=obstacle_mask,
-        time_horizon_obst=time_horizon_obst,
-    ).velocities
+    return orca_solve(positions, velocities, pref_velocities, radius, max_speed, params, mask=mask, obstacles=obstacles,
+                      obstacle_mask=obstacle_mask).velocities

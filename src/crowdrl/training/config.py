@@ -109,7 +109,7 @@ class ExplorationConfig:
     icm_lr: float = 1e-4
     re3_k: int = 3
     # icm/re3, stable-bonus options of IntrinsicRewardTransform (docs/mdp.md, "Intrinsic-reward options");
-    # the defaults are the method as published (and as run before these keys existed)
+    # the defaults are the method as published
     reward_norm: str = "none"  # none | std: r_in divided by its running std | batch: standardised over the sampled batch
     reward_center: bool = False  # r_in minus its mean (running, or the batch's with reward_norm=batch): no net per-step bonus
     reward_clip: float | None = None  # clip the normalised r_in to [-c, c]
@@ -411,8 +411,8 @@ def check_logger(run: RunConfig) -> None:
 # Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),
 # the rise of the resident memory's high-water mark (VmHWM) over one OnlinePlanner.plan call divided by
 # the states it expanded (float32, learned predictor, 64 states, depth 2, width 10, N = 10 and N = 64,
-# eager attention kernels: the fallback when compiling fails; the compiled SG-D3QN kernels need about a
-# sixth at N = 10, a twentieth at N = 64), rounded up by ~10 %. An upper estimate, not a measurement.
+# eager attention kernels: the fallback when compiling fails; the compiled ones need less,
+# docs/benchmarks.md), rounded up by ~10 %. An upper estimate, not a measurement.
 PLANNED_STATE_BYTES = {"sgd3qn": (1450, 500), "sarl": (2700, 12), "lstm_rl": (960, 40), "mp_rgl": (780, 42)}
 
 

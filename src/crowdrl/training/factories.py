@@ -21,7 +21,7 @@ from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.evaluation.rollout import crowd_env_of
 from crowdrl.exploration.intrinsic import IntrinsicRewardTransform, seeded_init
 from crowdrl.models import make_q_actor
-from crowdrl.models.lazy_compile import CompiledModule
+from crowdrl.compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
 from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
@@ -97,7 +97,7 @@ def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
     humans' mask when ``env``'s crowd size varies: one network serves any crowd), or, with
     ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and ``predictor``
     (which reads the mask in the same case). With ``train.compile_acting`` the actor calls ``net`` (and the predictor)
-    through ``torch.compile`` (:class:`~crowdrl.models.lazy_compile.CompiledModule`, same
+    through ``torch.compile`` (:class:`~crowdrl.compile.CompiledModule`, same
     parameters)."""
     crowd = crowd_env_of(env).config
     if run.train.compile_acting:

@@ -8,8 +8,8 @@ two agree on loss and gradients), written directly on the Q network:
 
 where ``r`` is the (n-step, possibly intrinsic-augmented) ``("next", "reward")`` and ``m`` the
 transition's ``steps_to_next_obs`` (1 when absent). ``DQNLoss`` swaps the target parameters into
-the online module and routes every pass through tensordict modules, which costs about a third
-of an update on CPU at batch 100; here the target network is a plain frozen copy, refreshed by
+the online module and routes every pass through tensordict modules (a cost measured in
+``docs/benchmarks.md``); here the target network is a plain frozen copy, refreshed by
 :meth:`D3QNLoss.update_target`.
 
 The math is written once, as functions of the parameters (:meth:`D3QNLoss.bootstrap`,
@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 from torchrl.objectives import LossModule
 
-from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
+from crowdrl.compile import CPP_WRAPPER, LazyCompiled
 
 
 WEIGHT_KEY = "loss_weight"  # optional [batch] weights of a batch's squared TD errors (they sum to 1)
@@ -143,7 +143,7 @@ class D3QNLoss(LossModule):
     @staticmethod
     def _q(net: nn.Module, params: dict[str, Tensor] | None, obs: tuple[Tensor, ...]) -> Tensor:
         """``net``'s Q values with ``params`` swapped in (``None``: its own parameters, called directly,
-        which skips ``functional_call``'s module walk: a few ms per update in eager mode)."""
+        which skips ``functional_call``'s module walk)."""
         return net(*obs) if params is None else functional_call(net, params, obs)
 
     @staticmethod

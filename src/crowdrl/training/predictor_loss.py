@@ -19,7 +19,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 from torch.func import functional_call, grad_and_value
 
-from crowdrl.models.lazy_compile import CPP_WRAPPER, LazyCompiled
+from crowdrl.compile import CPP_WRAPPER, LazyCompiled
 from crowdrl.models.predictor import predictor_loss
 
 

@@ -1,8 +1,12 @@
-"""Random ORCA scenes and their RVO2 answers (through pyrvo), for the tests and benchmarks.
+"""The test support shared by ``tests/`` and the scripts of ``experiments/``: random ORCA scenes
+and their RVO2 answers (through pyrvo), plausible robot-centric states, a run killed mid-training;
+:mod:`crowdrl_testing.reference`, the plain RVO2-based reference simulator.
 
-Not used by the library itself. :func:`rvo2_velocities` needs ``pyrvo``, a test/benchmark-only
-install (``make install``); it is imported when that function is called, so importing this module
-does not need it.
+Not part of the library and not in its wheel. It lives in ``experiments/``, the folder both import
+from: a script run as ``python experiments/<name>.py`` has it on ``sys.path``, and pytest puts it
+there (``pythonpath`` in ``pyproject.toml``). :func:`rvo2_velocities` needs ``pyrvo``, a
+test/benchmark-only install (``make install``); it is imported when that function is called, so
+importing this package does not need it.
 """
 
 from __future__ import annotations
@@ -10,8 +14,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from crowdrl.sim.orca import OrcaParams
+
 KINDS = ("crowd", "dense", "overlap", "many")
 ORCA_TOLERANCE = 1e-4  # m/s: the accepted |dv| between our ORCA and RVO2 on well-conditioned agents
+SCENE_PARAMS = OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)  # the scenes' ORCA
 
 
 def random_scene(rng: np.random.Generator, kind: str, n: int | None = None) -> dict[str, np.ndarray]:
@@ -57,21 +64,20 @@ def _cluster(rng: np.random.Generator, n: int, gap_lo: float, gap_hi: float) -> 
     return np.array(pos)
 
 
-def rvo2_velocities(scene: dict[str, np.ndarray], *, time_step: float = 0.25, neighbor_dist: float = 10.0,
-                    max_neighbors: int = 10, time_horizon: float = 5.0, time_horizon_obst: float = 5.0) -> np.ndarray:
-    """One RVO2 ``doStep`` of ``scene`` through pyrvo: the new velocities ``[n, 2]`` (float64).
+def rvo2_velocities(scene: dict[str, np.ndarray], params: OrcaParams = SCENE_PARAMS) -> np.ndarray:
+    """One RVO2 ``doStep`` of ``scene`` through pyrvo with ``params``: the new velocities ``[n, 2]`` (float64).
 
     ``scene["obstacles"]``, if present, lists polygons ``[n_vertices, 2]`` (RVO2's convention), added
     in order and processed before the agents are added."""
     import pyrvo
 
-    sim = pyrvo.RVOSimulator(time_step, neighbor_dist, max_neighbors, time_horizon, time_horizon_obst, 0.3, 1.0)
+    constants = (params.neighbor_dist, params.max_neighbors, params.time_horizon, params.obstacle_horizon)
+    sim = pyrvo.RVOSimulator(params.time_step, *constants, 0.3, 1.0)
     for polygon in scene.get("obstacles", ()):
         sim.add_obstacle([tuple(map(float, v)) for v in polygon])
     sim.process_obstacles()
     for p, v, r, m in zip(scene["positions"], scene["velocities"], scene["radius"], scene["max_speed"]):
-        sim.add_agent(tuple(map(float, p)), neighbor_dist, max_neighbors, time_horizon, time_horizon_obst, float(r),
-                      float(m), tuple(map(float, v)))
+        sim.add_agent(tuple(map(float, p)), *constants, float(r), float(m), tuple(map(float, v)))
     for i, pv in enumerate(scene["pref_velocities"]):
         sim.set_agent_pref_velocity(i, tuple(map(float, pv)))
     sim.do_step()
@@ -336,5 +342,5 @@ def train_until_killed(run, folder, frame: int) -> None:
     raise AssertionError(f"the run ended without an update at frame {frame}")
 
 
-__all__ = ["KINDS", "OBSTACLE_KINDS", "ORCA_TOLERANCE", "KilledRun", "padded_batch", "padded_obstacles",
+__all__ = ["KINDS", "OBSTACLE_KINDS", "ORCA_TOLERANCE", "SCENE_PARAMS", "KilledRun", "padded_batch", "padded_obstacles",
            "random_obstacle_scene", "random_scene", "robot_centric_states", "rvo2_velocities", "train_until_killed"]

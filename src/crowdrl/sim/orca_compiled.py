@@ -17,7 +17,7 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
   distance) followed by per-slot selects.
 * **One big fusion group.** ``max_fusion_size`` is raised far above inductor's default of 64
   nodes; with the default the graph is cut into many kernels streaming every intermediate
-  through memory, several times slower.
+  through memory.
 * **Obstacles in the same graph.** With obstacles the processed edges (eager
   :func:`~crowdrl.sim.obstacles.process_obstacles`, once per call unless given as
   :class:`~crowdrl.sim.obstacles.ObstacleEdges`) are packed ``[F, E, B]``; the graph finds each
@@ -27,8 +27,7 @@ Design (what makes inductor's C++ backend produce fast code on a CPU):
   the "already covered" rule and puts the kept lines first, hard in ``linearProgram3``.
 * **The rare 3-D fallback apart.** ``linearProgram3`` (``O(K^3)`` work) runs in a second compiled
   graph over only the agents whose 2-D program failed (gathered eagerly, padded to a multiple
-  of 16 lanes), compiled once with a dynamic agent count; in crowd scenes well under 1% of the
-  agents need it.
+  of 16 lanes), compiled once with a dynamic agent count; in crowd scenes few agents need it.
 
 Exactness: the per-element arithmetic is the eager path's, in the same order (and RVO2's:
 multiplication by reciprocals where RVO2 divides a ``Vector2``, ties by agent index); inductor
@@ -40,10 +39,10 @@ Cost: compilation is lazy, on the first call of each static configuration
 ``(B, N, dtype, device, ORCA parameters, mask given or not, torch.get_num_threads())``, with
 obstacles also the padded edge count, the kd-tree depth, ``time_horizon_obst`` and the slots, and kept
 in a process-wide cache (inductor specialises its OpenMP code on the thread count). The graphs
-have thousands of nodes: with a cold inductor cache one configuration takes minutes (about 2 to
-8 min for B=1024, N=10 on a loaded 2-core machine: tracing, fusion scheduling and a large C++
-translation unit); with inductor's on-disk cache warm (same torch, same configuration, cache
-directory kept, e.g. ``TORCHINDUCTOR_CACHE_DIR``) it takes seconds. Keep the batch shape static.
+have thousands of nodes: with a cold inductor cache one configuration takes minutes (tracing,
+fusion scheduling and a large C++ translation unit; docs/benchmarks.md); with inductor's on-disk
+cache warm (same torch, same configuration, cache directory kept, e.g. ``TORCHINDUCTOR_CACHE_DIR``)
+it takes seconds. Keep the batch shape static.
 """
 
 from __future__ import annotations
@@ -59,6 +58,7 @@ from torch import Tensor
 from crowdrl.sim.obstacles import ObstacleEdges
 from crowdrl.sim.orca import (
     RVO_EPSILON,
+    OrcaParams,
     OrcaSolution,
     check_orca_inputs,
     agent_line_math,
@@ -446,15 +446,11 @@ def compiled_orca_solve(
     pref_velocities: Tensor,
     radius: Tensor,
     max_speed: Tensor,
+    params: OrcaParams,
     *,
-    time_step: float,
-    neighbor_dist: float,
-    max_neighbors: int,
-    time_horizon: float,
     mask: Tensor | None = None,
     obstacles: Tensor | ObstacleEdges | None = None,
     obstacle_mask: Tensor | None = None,
-    time_horizon_obst: float | None = None,
 ) -> OrcaSolution:
     """:func:`crowdrl.sim.orca.orca_solve`, compiled; same arguments, result and dtypes.
 
@@ -465,13 +461,10 @@ def compiled_orca_solve(
     :data:`OBSTACLE_SLOTS`; a call where an agent has more obstacle neighbours is computed again with
     more slots (one more compilation), kept for that configuration from then on.
     """
-    check_orca_inputs(
-        positions, velocities, pref_velocities, radius, max_speed, mask,
-        time_step, neighbor_dist, max_neighbors, time_horizon,
-    )
-    edges, tho = prepare_obstacles(positions, obstacles, obstacle_mask, time_horizon_obst, time_horizon)
+    check_orca_inputs(positions, velocities, pref_velocities, radius, max_speed, mask, params)
+    edges = prepare_obstacles(positions, obstacles, obstacle_mask)
     B, N, _ = positions.shape
-    K = min(int(max_neighbors), N - 1)
+    K = min(int(params.max_neighbors), N - 1)
     inp = torch.cat(
         (positions, velocities, pref_velocities, radius.unsqueeze(-1), max_speed.unsqueeze(-1)), -1
     ).permute(2, 1, 0).contiguous()  # [8, N, B]
@@ -484,7 +477,7 @@ def compiled_orca_solve(
         size = -(-edges.num_edges // _EDGE_ALIGN) * _EDGE_ALIGN
         ep = _pack_edges(edges, size)
         margs = (inp, None if mask is None else margs[1], ep)
-        base = (size, edges.ancestors.shape[-1], float(tho))
+        base = (size, edges.ancestors.shape[-1], float(params.obstacle_horizon))
         slots = _SLOTS.get(base, min(size, OBSTACLE_SLOTS))
     if DYNAMIC_BATCH and B > 1:
         for t in margs:
@@ -493,8 +486,8 @@ def compiled_orca_solve(
     while True:
         if edges is not None and edges.num_edges > 0:
             obst = base[:2] + (slots, base[2])
-        main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, time_step, neighbor_dist,
-                                  time_horizon, mask is not None, obst)
+        main, lp3 = _get_compiled(B, N, K, positions.dtype, positions.device, params.time_step, params.neighbor_dist,
+                                  params.time_horizon, mask is not None, obst)
         out = main(*margs)
         if obst is None:
             break

@@ -1,4 +1,4 @@
-"""The compiled ORCA backend (crowdrl.sim.fast) against the eager one and against RVO2.
+"""The compiled ORCA backend (crowdrl.sim.orca_compiled) against the eager one and against RVO2.
 
 Compiling costs minutes with a cold inductor cache (the graph grows with the number of ORCA
 lines), so the default tests share ONE small static configuration (B=8 scenes of N=4 agents,
@@ -11,18 +11,19 @@ from __future__ import annotations
 import gzip
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from crowdrl.sim.orca import orca_solve
+from crowdrl.sim.orca import OrcaParams, orca_solve
 
-fast = pytest.importorskip("crowdrl.sim.fast")
+orca_compiled = pytest.importorskip("crowdrl.sim.orca_compiled")
 
 B, N = 8, 4
-PARAMS = dict(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
+PARAMS = OrcaParams(time_step=0.25, neighbor_dist=10.0, max_neighbors=10, time_horizon=5.0)
 CASES_PATH = Path(__file__).parent / "data" / "orca_cases.json.gz"
 
 
@@ -42,8 +43,8 @@ def _scene(seed: int, box: float, n_absent: int = 0, dtype=torch.float32):
 
 
 def _assert_agree(args, mask, params=PARAMS):
-    ref = orca_solve(*args, mask=mask, **params)
-    got = fast.compiled_orca_solve(*args, mask=mask, **params)
+    ref = orca_solve(*args, params, mask=mask)
+    got = orca_compiled.compiled_orca_solve(*args, params, mask=mask)
     assert got.velocities.shape == ref.velocities.shape and got.velocities.dtype == ref.velocities.dtype
     assert got.lp_infeasible.dtype == torch.bool and got.num_neighbors.dtype == ref.num_neighbors.dtype
     dv = (got.velocities - ref.velocities).norm(dim=-1)
@@ -72,7 +73,8 @@ def test_compiled_agrees_with_rvo2_reference_cases():
     """Reference cases of at most N agents (default parameters), packed B per call with a mask."""
     cases = [c for c in json.load(gzip.open(CASES_PATH, "rt"))["cases"]
              if len(c["input"]["positions"]) <= N
-             and all(c["input"][k] == v for k, v in PARAMS.items())]
+             and all(c["input"][k] == getattr(PARAMS, k)
+                     for k in ("time_step", "neighbor_dist", "max_neighbors", "time_horizon"))]
     assert len(cases) >= 40
     checked = 0
     for start in range(0, len(cases), B):
@@ -91,7 +93,7 @@ def test_compiled_agrees_with_rvo2_reference_cases():
             radius[b, :n] = torch.tensor(i["radius"])
             max_speed[b, :n] = torch.tensor(i["max_speed"])
             mask[b, :n] = True
-        sol = fast.compiled_orca_solve(pos, vel, pref, radius, max_speed, mask=mask, **PARAMS)
+        sol = orca_compiled.compiled_orca_solve(pos, vel, pref, radius, max_speed, PARAMS, mask=mask)
         for b, c in enumerate(chunk):
             n = len(c["input"]["positions"])
             ref = np.asarray(c["output"]["new_velocities"])
@@ -107,9 +109,9 @@ def test_compiled_agrees_with_rvo2_reference_cases():
 def test_compiled_rejects_bad_input():
     args, _ = _scene(0, 1.0)
     with pytest.raises(ValueError):
-        fast.compiled_orca_solve(args[0][:, :, :1], *args[1:], **PARAMS)
+        orca_compiled.compiled_orca_solve(args[0][:, :, :1], *args[1:], PARAMS)
     with pytest.raises(TypeError):
-        fast.compiled_orca_solve(args[0].double(), *args[1:], **PARAMS)
+        orca_compiled.compiled_orca_solve(args[0].double(), *args[1:], PARAMS)
 
 
 @pytest.mark.slow
@@ -127,8 +129,8 @@ def test_compiled_matches_eager_on_crowd_batch():
     max_speed = torch.ones_like(radius)
     for _ in range(8):
         args = (pos, vel, human_preferred_velocity(pos, s.human_goal), radius, max_speed)
-        ref = orca_solve(*args, **PARAMS)
-        got = fast.compiled_orca_solve(*args, **PARAMS)
+        ref = orca_solve(*args, PARAMS)
+        got = orca_compiled.compiled_orca_solve(*args, PARAMS)
         assert float((got.velocities - ref.velocities).norm(dim=-1).max()) <= 1e-5
         assert torch.equal(got.lp_infeasible, ref.lp_infeasible)
         pos, vel = pos + ref.velocities * cfg.time_step, ref.velocities
@@ -145,9 +147,9 @@ def _walls(seed: int, box: float, n_walls: int = 2, dtype=torch.float32) -> torc
 
 
 def _assert_agree_obstacles(args, mask, obstacles, tho=2.0):
-    kw = dict(mask=mask, obstacles=obstacles, time_horizon_obst=tho, **PARAMS)
+    kw = dict(params=replace(PARAMS, time_horizon_obst=tho), mask=mask, obstacles=obstacles)
     ref = orca_solve(*args, **kw)
-    got = fast.compiled_orca_solve(*args, **kw)
+    got = orca_compiled.compiled_orca_solve(*args, **kw)
     dv = (got.velocities - ref.velocities).norm(dim=-1)
     assert float(dv.max()) <= 1e-5, f"max |dv| {float(dv.max()):.3g}"
     for field in ("lp_infeasible", "num_neighbors", "num_obstacle_lines"):
@@ -162,7 +164,7 @@ def test_compiled_matches_eager_among_walls(monkeypatch):
     to compile on a loaded 2-core machine with a cold inductor cache (seconds when warm)."""
     from crowdrl.sim.obstacles import process_obstacles
 
-    monkeypatch.setattr(fast, "OBSTACLE_SLOTS", 2)
+    monkeypatch.setattr(orca_compiled, "OBSTACLE_SLOTS", 2)
     lines = fallback = 0
     for seed, box in ((0, 1.5), (1, 1.0), (2, 0.8), (3, 2.0)):
         args, mask = _scene(seed, box, n_absent=seed % 2)
@@ -177,9 +179,9 @@ def test_compiled_matches_eager_among_walls(monkeypatch):
 def test_compiled_grows_its_obstacle_slots(monkeypatch):
     """Agents inside a U of three walls see three edges, one more than the 2 slots first compiled:
     the call is computed again with 4 slots (a second compilation) and agrees with eager."""
-    monkeypatch.setattr(fast, "OBSTACLE_SLOTS", 2)
-    monkeypatch.setattr(fast, "_SLOTS", {})
+    monkeypatch.setattr(orca_compiled, "OBSTACLE_SLOTS", 2)
+    monkeypatch.setattr(orca_compiled, "_SLOTS", {})
     args, mask = _scene(7, 0.8)
     u = torch.tensor([[[-1.5, -1.5], [1.5, -1.5]], [[1.5, -1.5], [1.5, 1.5]], [[-1.5, 1.5], [-1.5, -1.5]]])
     _assert_agree_obstacles(args, mask, u.expand(B, 3, 2, 2), tho=5.0)
-    assert list(fast._SLOTS.values()) == [4]
+    assert list(orca_compiled._SLOTS.values()) == [4]
