@@ -6,8 +6,19 @@ two agree on loss and gradients), written directly on the Q network:
 
     y = r + γ^m (1 - terminated) Q_target(s', argmax_a Q(s', a)),   loss = mean (Q(s, a) - y)²
 
-where ``r`` is the (n-step, possibly intrinsic-augmented) ``("next", "reward")`` and ``m`` the
-transition's ``steps_to_next_obs`` (1 when absent). ``DQNLoss`` swaps the target parameters into
+where ``m`` is the transition's ``steps_to_next_obs`` (1 when absent). The whole target, piece by piece
+and where each is computed:
+
+* ``r = Σ_{k<m} γ^k r_{t+k}``: the n-step extrinsic return, written when a collected batch enters the
+  replay buffer (``training/nstep.py``; the window stops at the first step that ends an episode, and
+  ``terminated`` is that step's);
+* ``+ β·r_in(s_t, a_t, s_{t+1})``: ICM's or RE3's bonus, added when the batch is sampled, with the
+  current networks and the β schedule (``exploration/intrinsic.py``, ``IntrinsicRewardTransform``);
+* counterfactual transitions (``training/counterfactual.py``) are one-step: ``r`` is the simulator's
+  reward of the alternative action (plus the bonus), ``m = 1``, ``terminated`` its collision or goal;
+  with ``mode="merged"`` the batch carries ``loss_weight`` and the loss is ``Σ weight·(Q(s, a) - y)²``;
+* ``γ^m (1 - terminated) Q_target(s', argmax_a Q(s', a))``: the double-DQN bootstrap, here
+  (:meth:`D3QNLoss.bootstrap`); a truncation (timeout) bootstraps. ``DQNLoss`` swaps the target parameters into
 the online module and routes every pass through tensordict modules (a cost measured in
 ``docs/benchmarks.md``); here the target network is a plain frozen copy, refreshed by
 :meth:`D3QNLoss.update_target`.
