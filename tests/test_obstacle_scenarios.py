@@ -35,11 +35,16 @@ def _states(scenario: str, ids, num_humans: int = 10, split: str = "train", seed
 # sha256 of 40 steps of 5 episodes (test stream, seed 7, 6 humans, seeded random unicycle actions) and
 # of a 60-step CrowdNavEnv rollout with partial resets, generated with the code of main at 76b8ca1
 # (before obstacles) by this file's _trajectory_digest/_env_digest
+# float64 rounds an ulp apart on CPUs with and without AVX-512 (tests/test_orca_obstacles.py), and 40 steps
+# carry it into the hash: the second float64 digest of each scenario is the same code's on an Intel Xeon
+# with AVX-512 (checked at 76b8ca1's successor 934fbbd); the first, the AMD EPYC's that recorded them
 OPEN_DIGESTS = {
-    ("circle", "float32"): "53689000adca21d4351e02b12fea08b5fbf7b63f75a66bb4a2df190d5372e64e",
-    ("circle", "float64"): "5fca35d5eb88dd71d9357b9eecd20a4be596e5a8183cbeccc9fa1a9cc681fa05",
-    ("square", "float32"): "ad7474634190dd570090d514a87a61d435c4c40df9771e11a1b35ba13413e22e",
-    ("square", "float64"): "6935963cf78981d0d3be6647bc15b0fc9dd6732b3b35d7b785e9d79919d31565",
+    ("circle", "float32"): {"53689000adca21d4351e02b12fea08b5fbf7b63f75a66bb4a2df190d5372e64e"},
+    ("circle", "float64"): {"5fca35d5eb88dd71d9357b9eecd20a4be596e5a8183cbeccc9fa1a9cc681fa05",
+                            "3a2ed6242d14ace0863afe57e13615610502b88e4ec0b15e128c1b8aff3fc494"},
+    ("square", "float32"): {"ad7474634190dd570090d514a87a61d435c4c40df9771e11a1b35ba13413e22e"},
+    ("square", "float64"): {"6935963cf78981d0d3be6647bc15b0fc9dd6732b3b35d7b785e9d79919d31565",
+                            "567c73c7297e58e5e006378d55fa2338c7c9c32c8f4b157b04279c4f685a095f"},
 }
 OPEN_ENV_DIGESTS = {
     "circle": ("270629f287ea13b02813010476c69712b14b636388998901072fa8ceb6098c6a", 5),
@@ -78,7 +83,7 @@ def _env_digest(scenario: str, steps: int = 60) -> tuple[str, int]:
 @pytest.mark.parametrize("scenario", ["circle", "square"])
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_open_scenario_trajectories_are_unchanged(scenario, dtype):
-    assert _trajectory_digest(scenario, getattr(torch, dtype)) == OPEN_DIGESTS[scenario, dtype]
+    assert _trajectory_digest(scenario, getattr(torch, dtype)) in OPEN_DIGESTS[scenario, dtype]
 
 
 @pytest.mark.parametrize("scenario", ["circle", "square"])
