@@ -24,6 +24,7 @@ CASES = [  # scenario, crowd, steps: fixed and variable crowds, open space and w
     ("circle", {"num_humans": 5}, 60),
     ("square", {"num_humans": 4, "min_humans": 1}, 60),
     ("corridor", {"num_humans": 4}, 60),
+    ("circle", {"num_humans": 4, "human_model": "social_force"}, 60),  # any humans that ignore the robot
 ]
 
 
@@ -44,7 +45,8 @@ def _toward_goal(robot: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return torch.where(torch.rand(greedy.shape, generator=gen) < 0.1, random, greedy)
 
 
-@pytest.mark.parametrize("scenario, crowd, steps", CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize("scenario, crowd, steps", CASES,
+                         ids=[c[0] + ("-" + c[1]["human_model"] if "human_model" in c[1] else "") for c in CASES])
 def test_counterfactual_transitions_equal_the_env_stepping_each_alternative(scenario, crowd, steps):
     """Restore the env before a step, take each alternative action: reward, termination and every
     observation the network reads equal what the one-step model built from the real transition."""
