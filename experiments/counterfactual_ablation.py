@@ -153,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print table.json instead of the table")
     ap.add_argument("extra", nargs="*", help="Hydra overrides given to every new run")
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs: must be >= 1, got {args.jobs}")
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     failed: list[str] = []
     if not args.table_only:

@@ -219,3 +219,13 @@ def test_a_stopped_run_resumes_exactly_and_logs_the_counterfactual_scalars(tmp_p
     train_rows = [r for r in rows if r["kind"] == "train" and "train/counterfactual_collision_rate" in r]
     assert train_rows and all(0 <= r["train/counterfactual_collision_rate"] <= 1 for r in train_rows)
     assert all(("train/loss_counterfactual" in r) == (mode == "second_update") for r in train_rows)
+
+
+def test_look_ahead_refuses_actions_not_shaped_states_by_candidates():
+    from crowdrl.sim.kinematics import action_table
+    from crowdrl.sim.lookahead import look_ahead
+
+    cfg = CrowdConfig()
+    with pytest.raises(ValueError, match=r"actions must be shaped \[M, w\]"):
+        look_ahead(cfg, action_table(), torch.zeros(3, 9), torch.zeros(3, 2, 5), torch.zeros(3, 2, 5),
+                   torch.zeros(3, dtype=torch.int64))

@@ -41,6 +41,9 @@ def look_ahead(cfg: CrowdConfig, table: Tensor, robot: Tensor, humans: Tensor, h
     planner's observed edges as 2-vertex polygons). The heading of ``robot_next`` is not wrapped
     (:func:`~crowdrl.sim.kinematics.wrap_angle` gives the simulator's).
     """
+    if actions.dim() != 2 or actions.shape[0] != robot.shape[0]:
+        raise ValueError(f"actions must be shaped [M, w] with M = {robot.shape[0]} states (robot's rows), "
+                         f"got {tuple(actions.shape)}")
     dt = cfg.time_step
     M, w = actions.shape
     N = humans.shape[-2]

@@ -560,7 +560,8 @@ def check_counterfactual(run: RunConfig) -> None:
     _check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
            f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
     _check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
-    if c.mode != "off" and run.env.robot_visible and run.env.human_model != "linear":
+    humans = CrowdConfig(human_model=run.env.human_model, robot_visible=run.env.robot_visible)
+    if c.mode != "off" and humans.humans_react_to_robot:
         raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
                           f"after another action, which is exact only while they ignore the robot; with "
                           f"env.robot_visible=true the {run.env.human_model} humans react to it (set "
