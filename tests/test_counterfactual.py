@@ -66,7 +66,8 @@ def test_counterfactual_transitions_equal_the_env_stepping_each_alternative(scen
         real = env.step(td.clone())
         alternatives = torch.randint(0, 81, (B, k), generator=gen)
         alternatives[:, 0] = td["action"]  # the taken action too: the model must give back the real step
-        fake = part.transitions(real, alternatives).reshape(B, k)
+        fake = part.transitions(real, alternatives)
+        assert fake.batch_size == (B, k)
         for j in range(k):
             env.base_env.restore(snap)
             again = env.reset()
@@ -120,7 +121,7 @@ def test_second_update_yields_the_real_batch_then_the_counterfactual_one():
     part = CounterfactualExperience(cfg, make_q_network("sarl"), keys, k=5)
     batches = list(part.batches(td))
     assert [name for name, _ in batches] == ["real", "counterfactual"]
-    assert batches[0][1] is td and batches[1][1].batch_size == (30,)
+    assert batches[0][1] is td and batches[1][1].batch_size == (6, 5)
     assert set(part.scalars()) == {"counterfactual_collision_rate", "counterfactual_goal_rate", "counterfactual_reward"}
 
 
@@ -130,11 +131,36 @@ def test_merged_loss_is_the_weighted_sum_of_the_two_means():
     loss = D3QNLoss(net, keys, gamma=0.97)
     part = CounterfactualExperience(cfg, net, keys, mode="merged", k=5, weight=0.3)
     (name, merged), = list(part.batches(td))
-    assert name == "merged" and merged.batch_size == (36,)
+    assert name == "merged" and merged.batch_size == (6, 6)
     torch.testing.assert_close(merged[WEIGHT_KEY].sum(), torch.tensor(1.0))
     fake = CounterfactualExperience(cfg, net, keys, k=5).counterfactual_batch(td)
     expected = 0.7 * loss(td)["loss"] + 0.3 * loss(fake)["loss"]
     torch.testing.assert_close(loss(merged)["loss"], expected)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_grouped_batch_gives_the_flat_batch_loss_and_gradients(compiled):
+    """A ``[B, k]`` counterfactual batch encodes each state once; its loss and gradients equal those
+    of the same ``B·k`` transitions laid out flat (each state repeated), eager and compiled."""
+    cfg, keys, td = _sample()
+    net = make_q_network("sarl")
+    torch.manual_seed(3)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    part = CounterfactualExperience(cfg, net, keys, actions="random", k=5, seed=2)
+    grouped = part.counterfactual_batch(td)
+    flat = grouped.reshape(-1).clone()  # the states materialised, one row per transition
+    assert flat.batch_size == (30,)
+    loss = D3QNLoss(net, keys, gamma=0.97, compile=compiled)
+    loss.update_target()
+    out = loss.loss_and_grad(grouped)
+    grads = {k: p.grad.clone() for k, p in net.named_parameters()}
+    ref = loss.loss_and_grad(flat)
+    torch.testing.assert_close(out["loss"], ref["loss"], rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(out["q_mean"], ref["q_mean"], rtol=1e-5, atol=1e-7)
+    for k, p in net.named_parameters():
+        torch.testing.assert_close(grads[k], p.grad, rtol=1e-4, atol=1e-6)
 
 
 def test_config_keys_are_checked_naming_the_key():

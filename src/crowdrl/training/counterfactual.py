@@ -65,7 +65,7 @@ class CounterfactualExperience(UpdatePart):
     Example::
 
         part = CounterfactualExperience(env_config, net, ["robot_rc", "humans_rc"], k=5)
-        for name, batch in part.batches(buffer.sample()):   # "real", then "counterfactual" (500 rows)
+        for name, batch in part.batches(buffer.sample()):   # "real", then "counterfactual" ([100, 5])
             loss.loss_and_grad(batch); optimizer.step()
     """
 
@@ -106,12 +106,12 @@ class CounterfactualExperience(UpdatePart):
             yield "real", sample
             yield "counterfactual", self.counterfactual_batch(sample)  # top-k by the network just updated
             return
-        fake = self.counterfactual_batch(sample)
-        real = sample.select(*fake.keys(include_nested=True, leaves_only=True))
-        B, M = real.batch_size[0], fake.batch_size[0]
-        real.set(WEIGHT_KEY, torch.full((B,), (1.0 - self.weight) / B, device=real.device))
-        fake.set(WEIGHT_KEY, torch.full((M,), self.weight / M, device=fake.device))
-        yield "merged", torch.cat([real, fake])
+        fake = self.counterfactual_batch(sample)  # [B, k]
+        real = sample.select(*fake.keys(include_nested=True, leaves_only=True)).unsqueeze(1)  # [B, 1]: same states
+        B, k = fake.batch_size
+        real.set(WEIGHT_KEY, torch.full((B, 1), (1.0 - self.weight) / B, device=real.device))
+        fake.set(WEIGHT_KEY, torch.full((B, k), self.weight / (B * k), device=fake.device))
+        yield "merged", torch.cat([real, fake], dim=1)  # [B, 1 + k]: column 0 the real transition
 
     def scalars(self) -> dict[str, float]:
         return dict(self._scalars)
@@ -138,7 +138,9 @@ class CounterfactualExperience(UpdatePart):
     @torch.no_grad()
     def transitions(self, sample: TensorDictBase, actions: Tensor) -> TensorDictBase:
         """The ``B·k`` transitions ``(s, a', r', s'_a', terminated')`` of ``actions [B, k]`` from the
-        sampled states (row ``i·k + j``: state ``i``, action ``actions[i, j]``), in the loss's layout."""
+        sampled states, as a tensordict shaped ``[B, k]`` (``[i, j]``: state ``i``, action
+        ``actions[i, j]``; the state's observation is a view shared along ``k``, which the loss
+        encodes once)."""
         cfg = self.config
         B, k = actions.shape
         robot, humans, humans_next = (sample.get(key) for key in WORLD_KEYS)
@@ -162,18 +164,25 @@ class CounterfactualExperience(UpdatePart):
             nxt.set("obstacles", edges)
             nxt.set("obstacles_mask", edges_mask)
         nxt = self.observe(nxt)
+
+        def grouped(x: Tensor) -> Tensor:  # [B*k, ...] -> [B, k, ...]
+            return x.reshape(B, k, *x.shape[1:])
+
+        def shared(x: Tensor) -> Tensor:  # [B, ...] -> [B, k, ...]: the state, read once by the loss
+            return x.unsqueeze(1).expand(B, k, *x.shape[1:])
+
         judged = step.judged
-        terminated = (judged.collided | judged.reached).reshape(B * k, 1)
+        terminated = grouped((judged.collided | judged.reached).reshape(B * k, 1))
         reward = sample.get(("next", "reward"))
         action = sample.get("action")
         out = TensorDict({
-            **{key: repeat(sample.get(key)) for key in self.obs_keys},
-            "action": actions.reshape(B * k, *action.shape[1:]).to(action.dtype),
-            "steps_to_next_obs": torch.ones(B * k, 1, dtype=torch.int64, device=robot.device),
-            "next": {**{key: nxt.get(key) for key in self.obs_keys},
-                     "reward": judged.reward.reshape(B * k, *reward.shape[1:]).to(reward.dtype),
+            **{key: shared(sample.get(key)) for key in self.obs_keys},
+            "action": actions.reshape(B, k, *action.shape[1:]).to(action.dtype),
+            "steps_to_next_obs": torch.ones(B, k, 1, dtype=torch.int64, device=robot.device),
+            "next": {**{key: grouped(nxt.get(key)) for key in self.obs_keys},
+                     "reward": judged.reward.reshape(B, k, *reward.shape[1:]).to(reward.dtype),
                      "terminated": terminated, "done": terminated.clone()},
-        }, [B * k], device=sample.device)
+        }, [B, k], device=sample.device)
         self._scalars = {"counterfactual_collision_rate": float(judged.collided.float().mean()),
                          "counterfactual_goal_rate": float(judged.reached.float().mean()),
                          "counterfactual_reward": float(judged.reward.mean())}
@@ -182,7 +191,12 @@ class CounterfactualExperience(UpdatePart):
     def counterfactual_batch(self, sample: TensorDictBase) -> TensorDictBase:
         """:meth:`transitions` of :meth:`alternatives`, with the intrinsic bonus when the run has one."""
         out = self.transitions(sample, self.alternatives(sample))
-        return out if self.reward_bonus is None else self.reward_bonus(out)
+        if self.reward_bonus is None:
+            return out
+        reward = out.get(("next", "reward"))
+        flat = self.reward_bonus(out.reshape(-1))  # the bonus reads one transition per row
+        out.set(("next", "reward"), flat.get(("next", "reward")).reshape(reward.shape))
+        return out
 
 
 __all__ = ["ACTIONS", "MAP_KEYS", "MODES", "WORLD_KEYS", "CounterfactualExperience"]

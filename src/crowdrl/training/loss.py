@@ -53,15 +53,20 @@ WEIGHT_KEY = "loss_weight"  # optional [batch] weights of a batch's squared TD e
 
 
 class D3QNBatch(NamedTuple):
-    """The tensors of a sampled batch that the loss reads (``[batch, ...]``)."""
+    """The tensors of a sampled batch that the loss reads: ``n`` states, ``g`` transitions from each.
 
-    obs: tuple[Tensor, ...]
-    next_obs: tuple[Tensor, ...]
-    action: Tensor  # [batch, 1] int64 action indices
-    reward: Tensor  # [batch]
-    terminated: Tensor  # [batch] bool
-    steps: Tensor  # [batch] int64: m, the steps to the bootstrap state (the discount is γ^m)
-    weight: Tensor | None = None  # [batch]: the loss is sum weight·(Q - y)² (None: the mean)
+    A sampled batch has ``g = 1``; a batch of ``k`` alternative actions from each of ``n`` states
+    (counterfactual experience, a tensordict shaped ``[n, k]``) has ``g = k``, and each state is
+    encoded once for its ``k`` Q values.
+    """
+
+    obs: tuple[Tensor, ...]  # [n, ...]: the states
+    next_obs: tuple[Tensor, ...]  # [n * g, ...]: the bootstrap states, row i * g + j
+    action: Tensor  # [n, g] int64 action indices
+    reward: Tensor  # [n, g]
+    terminated: Tensor  # [n, g] bool
+    steps: Tensor  # [n, g] int64: m, the steps to the bootstrap state (the discount is γ^m)
+    weight: Tensor | None = None  # [n, g]: the loss is sum weight·(Q - y)² (None: the mean)
 
 
 class D3QNLoss(LossModule):
@@ -125,23 +130,33 @@ class D3QNLoss(LossModule):
         return tuple(out)
 
     def batch(self, td: TensorDictBase, num_actions: int | None = None) -> D3QNBatch:
-        """The loss's tensors from a sampled tensordict; actions are checked against ``num_actions``."""
+        """The loss's tensors from a sampled tensordict; actions are checked against ``num_actions``.
+
+        A tensordict shaped ``[n, g]`` holds ``g`` transitions from each of ``n`` states (its
+        observations equal along the second dimension: the first is read)."""
         obs, next_obs = self._obs(td), self._obs(td, ("next",))
         n = td.batch_size[0] if td.batch_dims else obs[0].shape[0]
+        g = 1
+        if td.batch_dims == 2:
+            g = td.batch_size[1]
+            obs = tuple(o[:, 0] for o in obs)
+            next_obs = tuple(o.reshape(n * g, *o.shape[2:]) for o in next_obs)
+        elif td.batch_dims > 2:
+            raise ValueError(f"D3QNLoss: a batch has one or two dimensions, got {tuple(td.batch_size)}")
         action = td.get("action")
-        if action.dtype == torch.bool or (num_actions is not None and num_actions > 1 and action.dim() >= 2
-                                          and action.shape[-1] == num_actions):
-            index = action.to(torch.int64).argmax(-1, keepdim=True)  # one-hot
+        if action.dtype == torch.bool or (num_actions is not None and num_actions > 1
+                                          and action.dim() > max(td.batch_dims, 1) and action.shape[-1] == num_actions):
+            index = action.to(torch.int64).argmax(-1).reshape(n, g)  # one-hot
         else:
-            index = action.reshape(n, 1).to(torch.int64)
+            index = action.reshape(n, g).to(torch.int64)
         if num_actions is not None and bool(((index < 0) | (index >= num_actions)).any()):
             raise ValueError(f"actions must lie in 0..{num_actions - 1}")
         steps = td.get("steps_to_next_obs", None)
-        steps = torch.ones(n, dtype=torch.int64, device=index.device) if steps is None else steps.reshape(n)
+        steps = torch.ones(n, g, dtype=torch.int64, device=index.device) if steps is None else steps.reshape(n, g)
         weight = td.get(WEIGHT_KEY, None)
-        return D3QNBatch(obs, next_obs, index, td.get(("next", "reward")).reshape(n),
-                         td.get(("next", "terminated")).reshape(n), steps,
-                         None if weight is None else weight.reshape(n).to(obs[0].dtype))
+        return D3QNBatch(obs, next_obs, index, td.get(("next", "reward")).reshape(n, g),
+                         td.get(("next", "terminated")).reshape(n, g), steps,
+                         None if weight is None else weight.reshape(n, g).to(obs[0].dtype))
 
     def num_actions(self, td: TensorDictBase) -> int:
         """Q-values per state (from one cheap forward pass: probes the network on one row)."""
@@ -172,20 +187,21 @@ class D3QNLoss(LossModule):
     @torch.no_grad()
     def bootstrap(self, params: dict[str, Tensor] | None, target_params: dict[str, Tensor] | None,
                   b: D3QNBatch) -> Tensor:
-        """The n-step double-DQN target ``y`` ``[batch]`` (no gradient); ``None`` params: the networks' own."""
+        """The n-step double-DQN target ``y`` ``[n, g]`` (no gradient); ``None`` params: the networks' own."""
         q_target = self._q(self.target_net, target_params, b.next_obs)
         if self.double:
             best = self._q(self.net, params, b.next_obs).argmax(-1, keepdim=True)
             boot = q_target.gather(-1, best).squeeze(-1)
         else:
             boot = q_target.amax(-1)
+        boot = boot.reshape(b.action.shape)
         return b.reward + self.gamma ** b.steps.to(boot.dtype) * boot * (~b.terminated)
 
     def objective(self, params: dict[str, Tensor] | None, b: D3QNBatch, y: Tensor
                   ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
         """``mean (Q_params(s, a) - y)²`` (``sum weight·(Q - y)²`` for a weighted batch) and, detached,
         ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
-        q = self._q(self.net, params, b.obs).gather(-1, b.action).squeeze(-1)
+        q = self._q(self.net, params, b.obs).gather(-1, b.action)  # [n, g]: each state encoded once
         diff = q - y
         loss = diff.pow(2).mean() if b.weight is None else (b.weight * diff.pow(2)).sum()
         return loss, (q.detach().mean(), diff.detach().abs().mean())
