@@ -2,6 +2,7 @@
 
     python experiments/human_model_agreement.py --model orca --robot-visible --seed 0 --scenes 3000
     python experiments/human_model_agreement.py --model social_force --seed 0 --scenes 3000 --json
+    python experiments/human_model_agreement.py --model social_force --backend compiled --seed 0 --scenes 3000
 
 Scenes: :func:`crowdrl_testing.random_crowd_scene` (``crowd``, ``dense``, ``overlap`` in turn: a 10 m
 square, clusters with mm gaps, overlapping clusters) with a robot at a random place and velocity. The
@@ -73,7 +74,7 @@ def reference(cfg: CrowdConfig, scene: dict[str, np.ndarray]) -> np.ndarray:
                                   substeps=cfg.sf_substeps, tau=cfg.sf_tau, v0=cfg.sf_v0, sigma=cfg.sf_sigma)[:n]
 
 
-def agreement(model: str, robot_visible: bool, seed: int, scenes: int) -> list[dict]:
+def agreement(model: str, robot_visible: bool, seed: int, scenes: int, backend: str = "eager") -> list[dict]:
     """Per scene kind: ``agents`` (humans compared), ``within`` (of them within the tolerance), ``worst_dv``."""
     gen = np.random.default_rng(seed)
     drawn = [(CROWD_KINDS[k % len(CROWD_KINDS)], random_crowd_scene(gen, CROWD_KINDS[k % len(CROWD_KINDS)]))
@@ -84,7 +85,7 @@ def agreement(model: str, robot_visible: bool, seed: int, scenes: int) -> list[d
     tol = TOLERANCE[model]
     rows = {kind: {"kind": kind, "agents": 0, "within": 0, "worst_dv": 0.0} for kind in CROWD_KINDS}
     for (kind, n), batch in groups.items():
-        cfg = CrowdConfig(num_humans=n, human_model=model, robot_visible=robot_visible)
+        cfg = CrowdConfig(num_humans=n, human_model=model, robot_visible=robot_visible, orca_backend=backend)
         ours, _ = human_velocities(cfg, crowd_scene_state(batch))
         for b, scene in enumerate(batch):
             err = np.linalg.norm(ours[b].double().numpy() - reference(cfg, scene), axis=-1)
@@ -101,23 +102,26 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--robot-visible", action="store_true", help="the humans see the robot")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes (numpy)")
     parser.add_argument("--scenes", type=int, default=3000, help="fresh scenes (default 3000)")
+    parser.add_argument("--backend", choices=("eager", "compiled"), default="eager",
+                        help="the simulator's backend (env.orca_backend); compiled: one graph per crowd size")
     add_json_argument(parser)
     args = parser.parse_args(argv)
     if args.scenes < 1:
         parser.error(f"--scenes must be >= 1, got {args.scenes}")
     torch.set_num_threads(1)
-    rows = agreement(args.model, args.robot_visible, args.seed, args.scenes)
+    rows = agreement(args.model, args.robot_visible, args.seed, args.scenes, args.backend)
     log(f"{args.model} done")
     agents, within = sum(r["agents"] for r in rows), sum(r["within"] for r in rows)
     for r in rows:
         r["share"] = r["within"] / r["agents"]
     tol = TOLERANCE[args.model]
-    meta = {"model": args.model, "robot_visible": args.robot_visible, "seed": args.seed, "scenes": args.scenes,
+    meta = {"model": args.model, "robot_visible": args.robot_visible, "backend": args.backend, "seed": args.seed,
+            "scenes": args.scenes,
             "tolerance": tol, "reference": "pyrvo (RVO2 2.0)" if args.model == "orca" else "socialforce 0.2.3"}
     columns = [Column("kind"), Column("agents"), Column("within", f"within {tol:g} m/s"),
                Column("share", "share", ".4%"), Column("worst_dv", "worst |dv| (m/s)", ".2e")]
     return emit(rows, columns=columns, meta=meta, as_json=args.json, extra={"agents": agents, "within": within},
-                title=f"{args.model} humans{' seeing the robot' if args.robot_visible else ''} against "
+                title=f"{args.model} humans ({args.backend}){' seeing the robot' if args.robot_visible else ''} against "
                       f"{meta['reference']}: one step of {args.scenes} fresh scenes (seed {args.seed})",
                 notes=[f"{within}/{agents} humans within {tol:g} m/s ({within / agents:.4%})"])
 

@@ -20,7 +20,7 @@ from torch import Tensor
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.obstacles import ObstacleEdges
 from crowdrl.sim.orca import OrcaParams, orca_solve
-from crowdrl.sim.social_force import social_force_velocities
+from crowdrl.sim.social_force import compiled_social_force_velocities, social_force_velocities
 from crowdrl.sim.state import CrowdState
 
 
@@ -133,7 +133,8 @@ def _orca_obstacles(cfg: CrowdConfig, state: CrowdState, edges: ObstacleEdges | 
 
 def social_force_humans(cfg: CrowdConfig, state: CrowdState) -> Tensor:
     """Social-force velocities of the humans (:func:`crowdrl.sim.social_force.social_force_velocities`
-    with ``cfg``'s ``sf_*`` parameters over one time step), the robot one more pedestrian when visible."""
+    with ``cfg``'s ``sf_*`` parameters over one time step; its compiled form under
+    ``orca_backend="compiled"``), the robot one more pedestrian when visible."""
     B, N = state.batch_size, state.num_humans
     position, velocity, goal = state.human_position, state.human_velocity, state.human_goal
     speed = torch.full((B, N), cfg.human_v_pref, dtype=position.dtype, device=state.device)
@@ -148,7 +149,8 @@ def social_force_humans(cfg: CrowdConfig, state: CrowdState) -> Tensor:
         has_goal[:, N] = False
         if mask is not None:
             mask = _with_robot(mask, mask.new_ones(B))
-    velocities = social_force_velocities(
+    solve = compiled_social_force_velocities if cfg.orca_backend == "compiled" else social_force_velocities
+    velocities = solve(
         position, velocity, goal, speed, time_step=cfg.time_step, substeps=cfg.sf_substeps, tau=cfg.sf_tau,
         v0=cfg.sf_v0, sigma=cfg.sf_sigma, has_goal=has_goal, mask=mask)
     return velocities[:, :N]

@@ -122,3 +122,90 @@ def social_force_velocities(
     if mask is not None:
         vel = torch.where(mask.unsqueeze(-1), vel, velocity)
     return vel
+
+
+def _scenes_last_velocities(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, gx: Tensor, gy: Tensor, v_pref: Tensor,
+                            has_goal: Tensor, pair: Tensor, time_step: float, substeps: int, tau: float, v0: float,
+                            sigma: float) -> tuple[Tensor, Tensor]:
+    """:func:`social_force_velocities`' sub-steps on components laid out scenes last (``[M, B]``, pairs
+    ``[a, b, B]``), the layout in which inductor vectorises every fused loop over the scenes. The same
+    terms in the same order as :func:`_repulsion` and the loop above, per component."""
+    dt = time_step / substeps
+    cos_phi = math.cos(FIELD_OF_VIEW_DEG / 2.0 / 180.0 * math.pi)
+    ax = ay = torch.zeros_like(x)
+    max_speed = v_pref * MAX_SPEED_MULTIPLIER
+    for _ in range(int(substeps)):
+        tx, ty = torch.where(has_goal, gx - x, vx), torch.where(has_goal, gy - y, vy)
+        norm = torch.sqrt(tx * tx + ty * ty)
+        norm = torch.where(norm == 0, torch.ones_like(norm), norm)
+        ex, ey = tx / norm, ty / norm
+        speed = torch.sqrt(vx * vx + vy * vy)
+        rx, ry = x.unsqueeze(1) - x.unsqueeze(0), y.unsqueeze(1) - y.unsqueeze(0)  # r_ab  [a, b, B]
+        s = (POTENTIAL_STEP * speed).unsqueeze(0)  # s_b  [1, b, B]
+        qx, qy = rx - s * ex.unsqueeze(0), ry - s * ey.unsqueeze(0)
+        n1 = torch.sqrt(rx * rx + ry * ry)
+        n2 = torch.sqrt(qx * qx + qy * qy)
+        total = n1 + n2
+        inner = total * total - s * s
+        root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))
+        value = v0 * torch.exp(-(0.5 * root) / sigma)
+        g = -(value / sigma) * 0.5 / (2 * root) * (2 * total)
+        w = torch.where(ex.unsqueeze(1) * -rx + ey.unsqueeze(1) * -ry > n1 * cos_phi, 1.0, OUT_OF_VIEW_FACTOR)
+        live = pair & (inner >= SQRT_FLOOR)
+        fx = (w * torch.where(live, -(rx / n1 * g + qx / n2 * g), 0.0)).sum(1)
+        fy = (w * torch.where(live, -(ry / n1 * g + qy / n2 * g), 0.0)).sum(1)
+        fx = (1.0 / tau) * (v_pref * ex - vx) + fx
+        fy = (1.0 / tau) * (v_pref * ey - vy) + fy
+        x, y = x + vx * dt + 0.5 * fx * dt ** 2, y + vy * dt + 0.5 * fy * dt ** 2
+        vx, vy = vx + 0.5 * (ax + fx) * dt, vy + 0.5 * (ay + fy) * dt
+        ax, ay = fx, fy
+        cap = (max_speed / torch.sqrt(vx * vx + vy * vy)).clamp(max=1.0)
+        vx, vy = vx * cap, vy * cap
+    return vx, vy
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def compiled_social_force_velocities(
+    position: Tensor,
+    velocity: Tensor,
+    goal: Tensor,
+    preferred_speed: Tensor,
+    *,
+    time_step: float,
+    substeps: int,
+    tau: float,
+    v0: float,
+    sigma: float,
+    has_goal: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> Tensor:
+    """:func:`social_force_velocities` through ``torch.compile`` (the simulator's ``orca_backend="compiled"``):
+    the sub-steps unrolled and fused into loops vectorised over the scenes (components laid out scenes
+    last). Compiled on first use (eager fallback with a warning): a static graph for the first shape, one
+    with dynamic sizes if another comes (torch.compile's default).
+    The same terms, but the norms are square roots of sums of squares (eager's ``vector_norm`` rounds
+    differently) and inductor fuses the sums: float32 answers differ from the eager function's by rounding,
+    which the sub-steps carry on (``experiments/human_model_agreement.py --backend compiled`` measures it
+    against the package)."""
+    from crowdrl.compile import CPP_WRAPPER, LazyCompiled
+
+    fn = _COMPILED.get("fn")
+    if fn is None:
+        fn = _COMPILED["fn"] = LazyCompiled(_scenes_last_velocities, dynamic=None, what="the social-force humans",
+                                              options={"max_fusion_size": 4096, **CPP_WRAPPER})
+    B, M, _ = position.shape
+    eye = torch.eye(M, dtype=torch.bool, device=position.device)
+    pair = ~eye if mask is None else ~eye & mask.unsqueeze(1) & mask.unsqueeze(2)
+    pair = pair.expand(B, M, M).permute(1, 2, 0).contiguous()  # [a, b, B]
+    has_goal = torch.ones(B, M, dtype=torch.bool, device=position.device) if has_goal is None else has_goal
+    x, y = position.permute(2, 1, 0).contiguous()  # [M, B] each
+    vx, vy = velocity.permute(2, 1, 0).contiguous()
+    gx, gy = goal.permute(2, 1, 0).contiguous()
+    vx, vy = fn(x, y, vx, vy, gx, gy, preferred_speed.t().contiguous(), has_goal.t().contiguous(), pair,
+                float(time_step), int(substeps), float(tau), float(v0), float(sigma))
+    vel = torch.stack((vx, vy), -1).transpose(0, 1)  # [B, M, 2]
+    if mask is not None:
+        vel = torch.where(mask.unsqueeze(-1), vel, velocity)
+    return vel
