@@ -143,7 +143,8 @@ class IntrinsicRewardTransform(Transform):
         reward_key, reward_ext_key, reward_int_key: where the total, extrinsic and intrinsic
             rewards go; the latter two get the reward's shape.
         update_bonus: if True, ``bonus.update(batch)`` runs on every sampled batch *after* the
-            rewards are computed (so ICM trains on the batches the Q loss sees).
+            rewards are computed (so ICM trains on the batches the Q loss sees); if False, the
+            caller runs that step when it chooses (:meth:`learn_from_last`).
         obs_norm: an :class:`ObservationNormalizer` applied to the bonus's input observations
             (``s`` and ``s'``, their statistics updated on every sampled batch); ``None``: raw.
         reward_norm: a :class:`RewardNormalizer` applied to ``r_in`` before ``beta``; ``None``: raw.
@@ -242,6 +243,7 @@ class IntrinsicRewardTransform(Transform):
         self.steps_key = _as_key(steps_key)
         self.bonus_stats = RunningMeanStd()  # of the r_in that beta scales (after reward_norm)
         self.last_stats: dict[str, float] = {}
+        self.last_input: TensorDictBase | None = None  # the bonus's input of the last recorded batch
 
     def stats_state_dict(self) -> dict[str, Any]:
         """The running statistics of the options (for checkpoints; the bonus saves its own state)."""
@@ -335,7 +337,19 @@ class IntrinsicRewardTransform(Transform):
         tensordict.set(self.reward_key, total)
         if record:
             self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
+            self.last_input = inputs
         return tensordict
+
+    def learn_from_last(self) -> dict[str, float]:
+        """``bonus.update`` on the last recorded batch, as the bonus saw it (its observations
+        normalised as they were): the training step a transform built with ``update_bonus=False``
+        leaves to its caller. The bonus was computed before the step, with the networks as they
+        were; the step's scalars join :attr:`last_stats`."""
+        if self.last_input is None:
+            raise RuntimeError("IntrinsicRewardTransform.learn_from_last: no batch was sampled through it yet")
+        stats = self.bonus.update(self.last_input)
+        self.last_stats = {**self.last_stats, **stats}
+        return stats
 
     @staticmethod
     def _stats(beta: float, raw: Tensor, r_in: Tensor, bonus: Tensor, r_ext: Tensor, terminal: Tensor | None
