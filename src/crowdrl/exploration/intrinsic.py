@@ -62,6 +62,8 @@ class IntrinsicBonus(nn.Module):
       current networks;
     * :meth:`update` takes one training step on the batch and returns scalars to log (a no-op
       returning ``{}`` for models that do not learn).
+    * :meth:`bonus_then_step` returns the bonus and that step as a callable to run later (ICM: one
+      pass through its networks for both).
     """
 
     def __init__(self, in_keys: Sequence[NestedKey]) -> None:
@@ -86,10 +88,17 @@ class IntrinsicBonus(nn.Module):
         return {}
 
     def bonus_and_update(self, td: TensorDictBase) -> tuple[Tensor, dict[str, float]]:
-        """``bonus(td)`` with the networks as they are, then ``update(td)``; subclasses may fuse the two."""
+        """``bonus(td)`` with the networks as they are, then ``update(td)``."""
+        r_in, step = self.bonus_then_step(td)
+        return r_in, step()
+
+    def bonus_then_step(self, td: TensorDictBase) -> tuple[Tensor, Callable[[], dict[str, float]]]:
+        """``bonus(td)`` with the networks as they are, and the training step on ``td`` as a callable to
+        run later (before the networks change otherwise): ``update(td)``; subclasses may share one pass
+        between the two."""
         with torch.no_grad():
             r_in = self.bonus(td)
-        return r_in, self.update(td)
+        return r_in, lambda: self.update(td)
 
     def forward(self, td: TensorDictBase) -> Tensor:
         """Same as :meth:`bonus`."""
@@ -243,7 +252,7 @@ class IntrinsicRewardTransform(Transform):
         self.steps_key = _as_key(steps_key)
         self.bonus_stats = RunningMeanStd()  # of the r_in that beta scales (after reward_norm)
         self.last_stats: dict[str, float] = {}
-        self.last_input: TensorDictBase | None = None  # the bonus's input of the last recorded batch
+        self._pending_step: Callable[[], dict[str, float]] | None = None  # learn_from_last's
 
     def stats_state_dict(self) -> dict[str, Any]:
         """The running statistics of the options (for checkpoints; the bonus saves its own state)."""
@@ -307,12 +316,14 @@ class IntrinsicRewardTransform(Transform):
             raise ValueError(f"reward {self.reward_key!r} shaped {tuple(r_ext.shape)} does not start with the batch {lead}")
         inputs = self.bonus_input(tensordict)
         beta = self.current_beta()
-        if self.update_bonus and learn:
+        update_stats = {}
+        if learn and self.update_bonus:
             r_in, update_stats = self.bonus.bonus_and_update(inputs)
+        elif learn and record:  # the step is the caller's: learn_from_last
+            r_in, self._pending_step = self.bonus.bonus_then_step(inputs)
         else:
             with torch.no_grad():
                 r_in = self.bonus.bonus(inputs)
-            update_stats = {}
         raw = r_in.detach()
         if tuple(raw.shape) != lead:
             raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(raw.shape)}, expected {lead}")
@@ -337,17 +348,17 @@ class IntrinsicRewardTransform(Transform):
         tensordict.set(self.reward_key, total)
         if record:
             self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
-            self.last_input = inputs
         return tensordict
 
     def learn_from_last(self) -> dict[str, float]:
-        """``bonus.update`` on the last recorded batch, as the bonus saw it (its observations
-        normalised as they were): the training step a transform built with ``update_bonus=False``
-        leaves to its caller. The bonus was computed before the step, with the networks as they
-        were; the step's scalars join :attr:`last_stats`."""
-        if self.last_input is None:
-            raise RuntimeError("IntrinsicRewardTransform.learn_from_last: no batch was sampled through it yet")
-        stats = self.bonus.update(self.last_input)
+        """The bonus's training step on the last batch sampled through a transform built with
+        ``update_bonus=False`` (its input as the bonus saw it; :meth:`IntrinsicBonus.bonus_then_step`):
+        the bonus was computed before the step, with the networks as they were, as with
+        ``update_bonus=True``. Run it before the bonus is used again; its scalars join :attr:`last_stats`."""
+        if self._pending_step is None:
+            raise RuntimeError("IntrinsicRewardTransform.learn_from_last: no batch sampled through it since its last step")
+        step, self._pending_step = self._pending_step, None
+        stats = step()
         self.last_stats = {**self.last_stats, **stats}
         return stats
 
