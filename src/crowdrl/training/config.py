@@ -515,17 +515,10 @@ INTRINSIC_OPTIONS = ("beta_schedule", "beta_decay", "reward_norm", "reward_cente
                      "obs_clip", "terminal_value", "icm_feature_norm", "icm_detach_target")
 
 
-def beta_schedule_of(x: ExplorationConfig) -> str:
-    """The β schedule in force: ``beta_schedule``, or for ``null`` linear with a ``beta_end``, else constant."""
-    if x.beta_schedule is not None:
-        return x.beta_schedule
-    return "constant" if x.beta_end is None else "linear"
-
-
 def _check_intrinsic_options(x: ExplorationConfig) -> None:
     from crowdrl.exploration.icm import FEATURE_NORMS
     from crowdrl.exploration.normalize import REWARD_SCALES
-    from crowdrl.exploration.schedule import SCHEDULES
+    from crowdrl.exploration.schedule import SCHEDULES, beta_schedule_of
 
     if x.name not in INTRINSIC:
         defaults = ExplorationConfig()
