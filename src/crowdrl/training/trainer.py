@@ -344,7 +344,7 @@ class Trainer:
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
         c.last_val = c.frames
-        with self.strategy.evaluating():  # e.g. noisy nets: greedy on the mean weights
+        with self.strategy.evaluating():  # the strategy's greedy setting (e.g. its mean weights)
             metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
