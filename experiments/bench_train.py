@@ -93,8 +93,9 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     collector.shutdown()
 
     # the trainer's own update (Trainer.update_once), timed in two parts: sampling, then the rest
-    # "optimizer": from the first optimiser step to the end of the update (with counterfactual experience the
-    # second batch's building, loss and step are in it too)
+    # "loss_and_grad": to the Q network's first optimiser step (the auxiliary learners' steps, ICM's or the crowd
+    # predictor's, are in it); "optimizer": from that step to the end of the update (with counterfactual experience
+    # the second batch's building, loss and step are in it too)
     parts: dict[str, list[float]] = {"sample": [], "loss_and_grad": [], "optimizer": []}
     step = tr.optimizer.step
 
@@ -110,7 +111,7 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
         t0 = time.perf_counter()
         sample = tr.buffer.sample()
         t1 = time.perf_counter()
-        tr.update_once(sample)  # (noise reset), loss and gradients, optimiser step, target copy when due
+        tr.update_once(sample)  # learners' steps, (noise reset), loss and gradients, optimiser step, target copy when due
         t3 = time.perf_counter()
         if i >= 20:
             for key, value in zip(parts, (t1 - t0, marks[0] - t1, t3 - marks[0])):

@@ -239,8 +239,8 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
         summary = trainer.train()
         assert isinstance(trainer.net.encoder, EXPECTED[name][0])
         if exploration != "egreedy":
-            assert isinstance(trainer.bonus.encoder, EXPECTED[name][0])
-            assert list(trainer.bonus.in_keys) == ["robot_rc", "humans_rc", "humans_mask"]  # its encoder reads the mask
+            assert isinstance(trainer.strategy.bonus.encoder, EXPECTED[name][0])
+            assert list(trainer.strategy.bonus.in_keys) == ["robot_rc", "humans_rc", "humans_mask"]  # its encoder reads the mask
     finally:
         trainer.close()
     assert summary["updates"] > 0 and summary["frames"] == 96
@@ -249,7 +249,7 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
     sample = trainer.buffer.sample()
     assert sample.get("humans_mask").shape == (16, 4) and not bool(sample.get("humans_mask").all())
     if exploration != "egreedy":
-        assert trainer.intrinsic.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed from this encoder
+        assert trainer.strategy.transform.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed from this encoder
 
 
 def test_a_checkpoint_of_one_encoder_is_refused_by_another(tmp_path):

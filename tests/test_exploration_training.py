@@ -64,7 +64,7 @@ def test_beta_zero_reproduces_the_extrinsic_only_run_bit_for_bit(tmp_path, name)
     bonus, _ = _run(tmp_path / "bonus", name, eps_start=0.0, eps_end=0.0, beta=0.0)
     for a, b in zip(plain.net.state_dict().values(), bonus.net.state_dict().values()):
         assert torch.equal(a, b)
-    assert bonus.intrinsic.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed, only weighted by 0
+    assert bonus.strategy.transform.last_stats["reward_int_raw_mean"] > 0  # the bonus was computed, only weighted by 0
 
 
 def test_beta_changes_the_run(tmp_path):
@@ -79,7 +79,7 @@ def test_icm_state_is_checkpointed_and_restored(tmp_path):
     assert "bonus" in data and "bonus_optimizer" in data
     fresh = Trainer(trainer.run, tmp_path / "fresh")
     fresh.load_state_dict(data)
-    for a, b in zip(trainer.bonus.state_dict().values(), fresh.bonus.state_dict().values()):
+    for a, b in zip(trainer.strategy.bonus.state_dict().values(), fresh.strategy.bonus.state_dict().values()):
         assert torch.equal(a, b)
 
 
@@ -142,7 +142,7 @@ def test_resuming_a_finished_run_trains_no_more_and_restores_the_schedules(tmp_p
         again.close()
     assert (resumed["frames"], resumed["updates"]) == (summary["frames"], summary["updates"])
     assert best.stat().st_mtime_ns == before
-    assert float(again.egreedy.eps) == pytest.approx(0.1)
+    assert again.strategy.scalars()["epsilon"] == pytest.approx(0.1)
     assert all(m.p == pytest.approx(0.01) for m in dropout_layers(again.net))
 
 

@@ -240,15 +240,19 @@ def test_intrinsic_options_on_another_variant_and_terminal_value_without_discoun
 
 
 def test_an_old_run_config_without_the_new_keys_builds_the_published_transform():
-    from crowdrl.training.variants import make_bonus, make_intrinsic_transform
+    from crowdrl.exploration import make_strategy
+    from crowdrl.training.variants import replay_context
+
+    def transform(run, frames):
+        return make_strategy(run.exploration).replay_transform(replay_context(run, ["robot_rc", "humans_rc"], 81,
+                                                                              lambda: frames))
 
     old = validate({"exploration": {"name": "icm", "beta": 0.02, "beta_end": None}})
-    t = make_intrinsic_transform(old, make_bonus(old, ["robot_rc", "humans_rc"]), ["robot_rc", "humans_rc"], lambda: 0)
+    t = transform(old, 0)
     assert t.obs_norm is None and t.reward_norm is None and t.terminal_value_gamma is None and t.beta == 0.02
     assert t.bonus.feature_norm == "none" and t.bonus.detach_target
     old_linear = validate({"exploration": {"name": "re3", "beta": 0.02, "beta_end": 0.0, "anneal_frames": 100}})
-    t = make_intrinsic_transform(old_linear, make_bonus(old_linear, ["robot_rc", "humans_rc"]),
-                                 ["robot_rc", "humans_rc"], lambda: 50)
+    t = transform(old_linear, 50)
     assert t.current_beta() == pytest.approx(0.01)  # beta_end alone still means a linear decay
 
 

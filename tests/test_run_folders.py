@@ -267,7 +267,7 @@ def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
     run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))
     keys = obs_keys(crowd_config(run))
     batch = make_env(run).rollout(3, break_when_any_done=False)
-    buffer, _ = make_buffer(run, keys=keys)
+    buffer = make_buffer(run, keys=keys)
     buffer.extend(batch.select(*stored_keys(run, keys)))
     one = buffer.storage[0]
     assert transition_bytes(run) == sum(v.numel() * v.element_size() for v in one.values(True, True))

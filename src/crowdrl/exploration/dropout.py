@@ -33,13 +33,15 @@ unchanged, and the greedy test policy can be a plain network.
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Iterator, TypeVar
+from typing import Any, Iterator, TypeVar
 
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from crowdrl.exploration._surgery import replace_children
+from crowdrl.exploration.schedule import linear_schedule
+from crowdrl.exploration.strategy import ExplorationStrategy, register_strategy
 
 M = TypeVar("M", bound=nn.Module)
 
@@ -129,7 +131,30 @@ def acting(module: nn.Module, flag: bool = True) -> Iterator[nn.Module]:
             layer.acting = prev
 
 
+class DropoutExploration(ExplorationStrategy):
+    """Action dropout as an exploration strategy: dropout after each hidden ReLU of the Q network's
+    ``head``, ``p`` from ``config.dropout_start`` to ``config.dropout_end`` linearly over
+    ``config.anneal_frames`` frames (with ε, see :class:`ExplorationStrategy`)."""
+
+    def __init__(self, config: Any) -> None:
+        super().__init__(config)
+        self.net: nn.Module | None = None
+
+    def modify_network(self, net: nn.Module) -> nn.Module:
+        add_action_dropout(net.head, self.config.dropout_start)
+        self.net = net
+        return net
+
+    def schedule(self, frames: int) -> None:
+        super().schedule(frames)
+        x = self.config
+        set_dropout_p(self.net, linear_schedule(x.dropout_start, x.dropout_end, x.anneal_frames, frames))
+
+
+register_strategy("dropout", DropoutExploration)
+
 __all__ = [
+    "DropoutExploration",
     "ScheduledDropout",
     "acting",
     "add_action_dropout",

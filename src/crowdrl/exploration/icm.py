@@ -28,7 +28,7 @@ shaped by the inverse loss and by the forward model's need to predict, never by 
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -153,7 +153,7 @@ class ICM(IntrinsicBonus):
         with torch.no_grad():
             return self._errors(td)[0]
 
-    def _step(self, errors: Tensor, logits: Tensor, idx: Tensor) -> dict[str, float]:
+    def _step(self, errors: Tensor, logits: Tensor, idx: Tensor, feature_norm: Tensor) -> dict[str, float]:
         forward_loss = errors.mean()
         inverse_loss = F.cross_entropy(logits.reshape(-1, self.num_actions), idx.reshape(-1))
         loss = self.inverse_weight * inverse_loss + (1.0 - self.inverse_weight) * forward_loss
@@ -163,14 +163,16 @@ class ICM(IntrinsicBonus):
         accuracy = (logits.detach().argmax(-1) == idx).float().mean()
         return {"icm_loss": float(loss.detach()), "icm_forward_loss": float(forward_loss.detach()),
                 "icm_inverse_loss": float(inverse_loss.detach()), "icm_inverse_accuracy": float(accuracy),
-                "icm_feature_norm": float(self._last_feature_norm)}
+                "icm_feature_norm": float(feature_norm)}
 
     def update(self, td: TensorDictBase) -> dict[str, float]:
         """One Adam step on ``0.8 * inverse + 0.2 * forward`` over the batch."""
-        return self._step(*self._errors(td))
+        return self._step(*self._errors(td), self._last_feature_norm)
 
-    def bonus_and_update(self, td: TensorDictBase) -> tuple[Tensor, dict[str, float]]:
-        """Same result as ``bonus`` then ``update``, with one pass through the networks."""
+    def bonus_then_step(self, td: TensorDictBase) -> tuple[Tensor, Callable[[], dict[str, float]]]:
+        """Same result as ``bonus`` and then ``update``, with one pass through the networks (the step
+        reuses its graph)."""
         errors, logits, idx = self._errors(td)
-        r_in = errors.detach().clone()  # computed before the step below changes the weights
-        return r_in, self._step(errors, logits, idx)
+        r_in = errors.detach().clone()  # computed before the step changes the weights
+        feature_norm = self._last_feature_norm
+        return r_in, lambda: self._step(errors, logits, idx, feature_norm)

@@ -62,6 +62,8 @@ class IntrinsicBonus(nn.Module):
       current networks;
     * :meth:`update` takes one training step on the batch and returns scalars to log (a no-op
       returning ``{}`` for models that do not learn).
+    * :meth:`bonus_then_step` returns the bonus and that step as a callable to run later (ICM: one
+      pass through its networks for both).
     """
 
     def __init__(self, in_keys: Sequence[NestedKey]) -> None:
@@ -86,10 +88,17 @@ class IntrinsicBonus(nn.Module):
         return {}
 
     def bonus_and_update(self, td: TensorDictBase) -> tuple[Tensor, dict[str, float]]:
-        """``bonus(td)`` with the networks as they are, then ``update(td)``; subclasses may fuse the two."""
+        """``bonus(td)`` with the networks as they are, then ``update(td)``."""
+        r_in, step = self.bonus_then_step(td)
+        return r_in, step()
+
+    def bonus_then_step(self, td: TensorDictBase) -> tuple[Tensor, Callable[[], dict[str, float]]]:
+        """``bonus(td)`` with the networks as they are, and the training step on ``td`` as a callable to
+        run later (before the networks change otherwise): ``update(td)``; subclasses may share one pass
+        between the two."""
         with torch.no_grad():
             r_in = self.bonus(td)
-        return r_in, self.update(td)
+        return r_in, lambda: self.update(td)
 
     def forward(self, td: TensorDictBase) -> Tensor:
         """Same as :meth:`bonus`."""
@@ -143,7 +152,8 @@ class IntrinsicRewardTransform(Transform):
         reward_key, reward_ext_key, reward_int_key: where the total, extrinsic and intrinsic
             rewards go; the latter two get the reward's shape.
         update_bonus: if True, ``bonus.update(batch)`` runs on every sampled batch *after* the
-            rewards are computed (so ICM trains on the batches the Q loss sees).
+            rewards are computed (so ICM trains on the batches the Q loss sees); if False, the
+            caller runs that step when it chooses (:meth:`learn_from_last`).
         obs_norm: an :class:`ObservationNormalizer` applied to the bonus's input observations
             (``s`` and ``s'``, their statistics updated on every sampled batch); ``None``: raw.
         reward_norm: a :class:`RewardNormalizer` applied to ``r_in`` before ``beta``; ``None``: raw.
@@ -242,6 +252,7 @@ class IntrinsicRewardTransform(Transform):
         self.steps_key = _as_key(steps_key)
         self.bonus_stats = RunningMeanStd()  # of the r_in that beta scales (after reward_norm)
         self.last_stats: dict[str, float] = {}
+        self._pending_step: Callable[[], dict[str, float]] | None = None  # learn_from_last's
 
     def stats_state_dict(self) -> dict[str, Any]:
         """The running statistics of the options (for checkpoints; the bonus saves its own state)."""
@@ -305,12 +316,14 @@ class IntrinsicRewardTransform(Transform):
             raise ValueError(f"reward {self.reward_key!r} shaped {tuple(r_ext.shape)} does not start with the batch {lead}")
         inputs = self.bonus_input(tensordict)
         beta = self.current_beta()
-        if self.update_bonus and learn:
+        update_stats = {}
+        if learn and self.update_bonus:
             r_in, update_stats = self.bonus.bonus_and_update(inputs)
+        elif learn and record:  # the step is the caller's: learn_from_last
+            r_in, self._pending_step = self.bonus.bonus_then_step(inputs)
         else:
             with torch.no_grad():
                 r_in = self.bonus.bonus(inputs)
-            update_stats = {}
         raw = r_in.detach()
         if tuple(raw.shape) != lead:
             raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(raw.shape)}, expected {lead}")
@@ -336,6 +349,18 @@ class IntrinsicRewardTransform(Transform):
         if record:
             self.last_stats = {**self._stats(beta, raw, r_in, bonus, r_ext, terminal), **update_stats}
         return tensordict
+
+    def learn_from_last(self) -> dict[str, float]:
+        """The bonus's training step on the last batch sampled through a transform built with
+        ``update_bonus=False`` (its input as the bonus saw it; :meth:`IntrinsicBonus.bonus_then_step`):
+        the bonus was computed before the step, with the networks as they were, as with
+        ``update_bonus=True``. Run it before the bonus is used again; its scalars join :attr:`last_stats`."""
+        if self._pending_step is None:
+            raise RuntimeError("IntrinsicRewardTransform.learn_from_last: no batch sampled through it since its last step")
+        step, self._pending_step = self._pending_step, None
+        stats = step()
+        self.last_stats = {**self.last_stats, **stats}
+        return stats
 
     @staticmethod
     def _stats(beta: float, raw: Tensor, r_in: Tensor, bonus: Tensor, r_ext: Tensor, terminal: Tensor | None

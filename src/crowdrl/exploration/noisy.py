@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from typing import Iterator, TypeVar
+from typing import Any, ContextManager, Iterator, TypeVar
 
 import torch
 from tensordict import TensorDictBase
@@ -54,6 +54,7 @@ from torch import nn
 from torchrl.modules import NoisyLinear
 
 from crowdrl.exploration._surgery import replace_children
+from crowdrl.exploration.strategy import ExplorationStrategy, register_strategy
 
 M = TypeVar("M", bound=nn.Module)
 
@@ -168,8 +169,36 @@ def noise_disabled(module: nn.Module) -> Iterator[nn.Module]:
             layer.noise_enabled = flag
 
 
+class NoisyExploration(ExplorationStrategy):
+    """Noisy nets as an exploration strategy: the Q network's ``head`` noisified (``config.sigma0``),
+    a fresh noise sample for each collected batch, independent online and target samples before
+    each update, the mean weights for greedy evaluation (see the module docstring)."""
+
+    def __init__(self, config: Any) -> None:
+        super().__init__(config)
+        self.net: nn.Module | None = None
+
+    def modify_network(self, net: nn.Module) -> nn.Module:
+        noisify_head(net.head, self.config.sigma0)
+        self.net = net
+        return net
+
+    def before_collection(self, frames: int) -> None:
+        super().before_collection(frames)
+        reset_noise(self.net)
+
+    def before_update(self, loss: nn.Module) -> None:
+        reset_noise(loss)
+
+    def evaluating(self) -> ContextManager:
+        return noise_disabled(self.net)
+
+
+register_strategy("noisy", NoisyExploration)
+
 __all__ = [
     "FactorisedNoisyLinear",
+    "NoisyExploration",
     "noise_disabled",
     "noisify_head",
     "noisy_layers",

@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 import math
-from typing import Callable, Union
+from typing import Any, Callable, Union
 
 SCHEDULES = ("constant", "linear", "exp")
 Schedule = Union[float, Callable[[], float]]
@@ -56,4 +56,12 @@ def make_schedule(kind: str, start: float, *, end: float | None = None, duration
     return lambda: exp_schedule(start, decay, clock())
 
 
-__all__ = ["SCHEDULES", "exp_schedule", "linear_schedule", "make_schedule"]
+def beta_schedule_of(x: Any) -> str:
+    """The schedule of an exploration config's ``beta``: ``x.beta_schedule``, or for ``None`` linear
+    when ``x.beta_end`` is given, else constant."""
+    if x.beta_schedule is not None:
+        return x.beta_schedule
+    return "constant" if x.beta_end is None else "linear"
+
+
+__all__ = ["SCHEDULES", "beta_schedule_of", "exp_schedule", "linear_schedule", "make_schedule"]

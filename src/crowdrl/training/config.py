@@ -38,7 +38,7 @@ from crowdrl.sim.rng import MAX_SEED
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EVAL_BATCH = 1000  # episodes stepped at once by the final test (and experiments/evaluate.py's eval.batch)
-EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")
+EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")  # the shipped variants; any registered strategy is valid
 INTRINSIC = ("icm", "re3")
 LOGGERS = ("wandb", "csv")
 WANDB_MODES = ("offline", "online", "disabled")
@@ -345,7 +345,9 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     _one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
-    _one_of(x.name, "exploration.name", EXPLORATIONS)
+    from crowdrl.exploration.strategy import strategy_names
+
+    _one_of(x.name, "exploration.name", strategy_names())
     _check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",
            f"need 0 <= eps_end <= eps_start <= 1, got {x.eps_start} -> {x.eps_end}")
     _check(x.anneal_frames >= 1, "exploration.anneal_frames", f"must be >= 1, got {x.anneal_frames}")
@@ -515,17 +517,10 @@ INTRINSIC_OPTIONS = ("beta_schedule", "beta_decay", "reward_norm", "reward_cente
                      "obs_clip", "terminal_value", "icm_feature_norm", "icm_detach_target")
 
 
-def beta_schedule_of(x: ExplorationConfig) -> str:
-    """The β schedule in force: ``beta_schedule``, or for ``null`` linear with a ``beta_end``, else constant."""
-    if x.beta_schedule is not None:
-        return x.beta_schedule
-    return "constant" if x.beta_end is None else "linear"
-
-
 def _check_intrinsic_options(x: ExplorationConfig) -> None:
     from crowdrl.exploration.icm import FEATURE_NORMS
     from crowdrl.exploration.normalize import REWARD_SCALES
-    from crowdrl.exploration.schedule import SCHEDULES
+    from crowdrl.exploration.schedule import SCHEDULES, beta_schedule_of
 
     if x.name not in INTRINSIC:
         defaults = ExplorationConfig()

@@ -1,5 +1,6 @@
 """Factories of a run, in the TorchRL ``sota-implementations`` style: ``make_env``,
-``make_actor``, ``make_exploration``, ``make_loss``, ``make_buffer``, ``make_collector``.
+``make_actor``, ``make_exploration``, ``make_loss``, ``make_buffer``, ``make_learners``,
+``make_collector``.
 
 Training, validation, the final test and ``experiments/evaluate.py`` build their envs with the
 same :func:`make_env` and act with the same actor, so there is one rollout path
@@ -11,15 +12,17 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
-from torchrl.modules import EGreedyModule
 
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.evaluation.rollout import crowd_env_of
-from crowdrl.exploration.intrinsic import IntrinsicRewardTransform, seeded_init
+from crowdrl.auxiliary import AuxiliaryLearner
+from crowdrl.exploration import ExplorationStrategy, ReplayContext, make_strategy
+from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.models import make_q_actor
 from crowdrl.compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
@@ -30,7 +33,8 @@ from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.parts import ReplayOnly, UpdatePart
-from crowdrl.training.variants import ONE_STEP_KEY, make_intrinsic_transform, uses_one_step_successor
+from crowdrl.training.predictor_learner import PredictorLearner
+from crowdrl.training.variants import ONE_STEP_KEY
 
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
@@ -122,17 +126,18 @@ def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | Non
         return make_predictor(run.planning.predictor, time_step).to(run.device)
 
 
-def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase) -> tuple[TensorDictSequential, EGreedyModule]:
-    """The acting policy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
+def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase,
+                     strategy: ExplorationStrategy | None = None) -> tuple[TensorDictSequential, ExplorationStrategy]:
+    """The acting policy of ``strategy`` (default: ``make_strategy(run.exploration)``) and the
+    strategy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
 
     Under ``ExplorationType.DETERMINISTIC`` (evaluation) the ε-greedy step passes the greedy
-    action through, so the same policy serves collection and evaluation. The module holds ε only:
-    the trainer sets it from the schedule at each frame count (``egreedy.eps.fill_``), never by
-    the module's own annealing (``step()``).
+    action through, so the same policy serves collection and evaluation. ε is set by
+    ``strategy.schedule(frames)``.
     """
-    x = run.exploration
-    egreedy = EGreedyModule(env.action_spec, eps_init=x.eps_start, eps_end=x.eps_start)
-    return TensorDictSequential(actor, egreedy), egreedy
+    if strategy is None:
+        strategy = make_strategy(run.exploration)
+    return strategy.policy(actor, env.action_spec), strategy
 
 
 def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_KEYS) -> D3QNLoss:
@@ -147,35 +152,45 @@ def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None
     return torch.optim.Adam(net.parameters(), lr=run.train.lr if lr is None else lr, fused=True)
 
 
-def make_buffer(run: RunConfig, bonus=None, frames: Callable[[], int] | None = None,
-                keys: tuple[str, ...] = OBS_KEYS) -> tuple[TensorDictReplayBuffer, Transform | None]:
-    """The replay buffer of observations ``keys``: n-step returns when a batch is written, then the
-    intrinsic bonus (ICM/RE3) when one is sampled.
-
-    Returns the buffer and the intrinsic-reward transform (``None`` without a bonus).
-    """
+def make_buffer(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS, strategy: ExplorationStrategy | None = None,
+                context: ReplayContext | None = None) -> TensorDictReplayBuffer:
+    """The replay buffer of observations ``keys``: n-step returns when a batch is written, then
+    what the exploration ``strategy`` does to a sampled batch (ICM/RE3: the intrinsic bonus), its
+    transform built from ``context`` (:func:`~crowdrl.training.variants.replay_context`)."""
     t = run.train
-    one_step = ONE_STEP_KEY if uses_one_step_successor(run) else None
-    transform: Transform = NStepReturn(t.n_step, t.gamma, keys, one_step_key=one_step)
-    intrinsic = None
-    if bonus is not None:
-        intrinsic = make_intrinsic_transform(run, bonus, list(keys), frames or (lambda: 0))
-        transform = Compose(transform, intrinsic)
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_size, device=run.device),
-                                    batch_size=t.batch_size, transform=transform)
-    return buffer, intrinsic
+    reads_successor = strategy is not None and strategy.reads_successor and t.n_step > 1
+    transform: Transform = NStepReturn(t.n_step, t.gamma, keys, one_step_key=ONE_STEP_KEY if reads_successor else None)
+    extra = strategy.replay_transform(context) if strategy is not None else None
+    if extra is not None:
+        transform = Compose(transform, extra)
+    return TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_size, device=run.device),
+                                  batch_size=t.batch_size, transform=transform)
+
+
+def make_learners(run: RunConfig, predictor: torch.nn.Module | None, keys: tuple[str, ...],
+                  strategy: ExplorationStrategy | None = None) -> list[AuxiliaryLearner]:
+    """The models trained beside the Q network on each sampled batch, in the order they step: the
+    exploration ``strategy``'s (ICM's forward and inverse models), then the planner's crowd
+    ``predictor`` when it has weights (its own Adam at ``planning.lr``; ``keys``: whether it reads
+    the humans' mask)."""
+    learners = list(strategy.learners()) if strategy is not None else []
+    if predictor is not None and any(True for _ in predictor.parameters()):
+        learners.append(PredictorLearner(predictor, make_optimizer(run, predictor, lr=run.planning.lr),
+                                         compile=run.train.compile_loss, mask_key=MASK_KEY if MASK_KEY in keys else None))
+    return learners
 
 
 def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
-                     intrinsic: IntrinsicRewardTransform | None = None) -> UpdatePart:
+                     reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None) -> UpdatePart:
     """The gradient steps of one update (:mod:`crowdrl.training.parts`): the sampled batch alone, or with
-    ``train.counterfactual.mode`` its counterfactual transitions too (the intrinsic bonus added to them)."""
+    ``train.counterfactual.mode`` its counterfactual transitions too (``reward_bonus``, the exploration
+    strategy's, added to them)."""
     c = run.train.counterfactual
     if c.mode == "off":
         return ReplayOnly()
-    bonus = None if intrinsic is None else (lambda td: intrinsic.add_bonus(td, learn=False, record=False))
     return CounterfactualExperience(crowd, net, keys, mode=c.mode, actions=c.actions, k=c.k, weight=c.weight,
-                                    entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1), reward_bonus=bonus)
+                                    entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1),
+                                    reward_bonus=reward_bonus)
 
 
 def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
@@ -207,5 +222,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
 
 
 __all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict", "crowd_config",
-           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_loss", "make_optimizer",
+           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_learners", "make_loss",
+           "make_optimizer",
            "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]

@@ -2,11 +2,15 @@
 atomic checkpoints and resume.
 
 One ``Trainer`` is one run folder. The loop: collect ``num_envs x steps_per_batch`` frames with
-the ε-greedy policy, write them to the replay buffer as n-step transitions, do
-``updates_per_frame`` updates of batch ``batch_size`` per collected frame, copy the target
+the exploration strategy's policy, write them to the replay buffer as n-step transitions, do
+``updates_per_frame`` updates of batch ``batch_size`` per collected frame (each: the auxiliary
+learners' steps on the sampled batch, then the Q update's gradient steps), copy the target
 network every ``target_update_frames`` frames, validate greedily on held-out validation
 episodes every ``val_every_frames`` frames (the best policy is kept), checkpoint every
-``checkpoint_every_frames`` frames.
+``checkpoint_every_frames`` frames. What the exploration variant adds comes through its
+:class:`~crowdrl.exploration.strategy.ExplorationStrategy`, what else learns on the sampled batches
+through :class:`~crowdrl.auxiliary.AuxiliaryLearner` instances, what the update does through its
+:class:`~crowdrl.training.parts.UpdatePart`.
 """
 
 from __future__ import annotations
@@ -21,19 +25,16 @@ import torch
 from tensordict import TensorDictBase
 
 from crowdrl.evaluation import EpisodeMetrics, evaluate
-from crowdrl.exploration.dropout import set_dropout_p
-from crowdrl.exploration.noisy import noise_disabled, reset_noise
-from crowdrl.exploration.schedule import linear_schedule
+from crowdrl.exploration import make_strategy
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
-from crowdrl.training.factories import (MASK_KEY, buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
-                                        make_exploration, make_loss, make_optimizer, make_predictor_of, make_update_part,
-                                        obs_keys, stored_keys)
-from crowdrl.training.predictor_loss import PredictorLoss
+from crowdrl.training.factories import (buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
+                                        make_exploration, make_learners, make_loss, make_optimizer, make_predictor_of,
+                                        make_update_part, obs_keys, stored_keys)
 from crowdrl.training.scalars import ScalarLog, WandbMirror
-from crowdrl.training.variants import make_bonus, make_network
+from crowdrl.training.variants import make_network, replay_context
 
 
 class NonFiniteError(FloatingPointError):
@@ -110,35 +111,34 @@ class Trainer:
         # + the humans' mask when the crowd size varies; entity tokens among obstacles
         self.obs_keys = obs_keys(self.crowd_cfg, sees_obstacles(run))
         self.stored_keys = stored_keys(run, self.obs_keys)
-        self.net = make_network(run, int(self.env.action_spec.n)).to(run.device)
-        # online planning: the crowd predictor (seeded apart from the global RNG) and its own Adam
+        num_actions = int(self.env.action_spec.n)
+        # the exploration strategy: its network surgery, acting policy, replay transform, learners
+        self.strategy = make_strategy(run.exploration)
+        self.net = make_network(run, num_actions, self.strategy).to(run.device)
+        # online planning: the crowd predictor (seeded apart from the global RNG)
         self.predictor = make_predictor_of(run, self.crowd_cfg.time_step)
-        self.predictor_optimizer = None
-        if self.predictor is not None and any(True for _ in self.predictor.parameters()):
-            self.predictor_optimizer = make_optimizer(run, self.predictor, lr=run.planning.lr)
-            # its loss and gradients: one compiled graph under train.compile_loss, as the Q update
-            self.predictor_loss_fn = PredictorLoss(self.predictor, compile=run.train.compile_loss)
         self.actor = make_actor(run, self.env, self.net, self.predictor)
-        self.policy, self.egreedy = make_exploration(run, self.env, self.actor)
+        self.policy, _ = make_exploration(run, self.env, self.actor, self.strategy)
         self.loss = make_loss(run, self.net, self.obs_keys)
         # the target network is copied every `updates_per_copy` updates (target_update_frames of data)
         self.updates_per_copy = max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9)))
         self.optimizer = make_optimizer(run, self.net)
         self.counters = Counters()
-        # ICM / RE3: built after the Q network, from their own seeds (the global RNG is untouched)
-        self.bonus = make_bonus(run, list(self.obs_keys), int(self.env.action_spec.n))
-        if self.bonus is not None:
-            self.bonus.to(run.device)
-        self.buffer, self.intrinsic = make_buffer(run, self.bonus, lambda: self.counters.frames, self.obs_keys)
+        # the strategy's replay transform (ICM / RE3: their own seeds, the global RNG is untouched)
+        self.buffer = make_buffer(run, self.obs_keys, self.strategy,
+                                  replay_context(run, list(self.obs_keys), num_actions, lambda: self.counters.frames))
+        # what else learns on each sampled batch, with its own optimiser (the strategy's, the crowd predictor)
+        self.learners = make_learners(run, self.predictor, self.obs_keys, self.strategy)
         # the gradient steps of one update (the sampled batch; with counterfactual experience, simulated ones too)
-        self.update_part = make_update_part(run, self.net, self.obs_keys, self.crowd_cfg, self.intrinsic)
+        self.update_part = make_update_part(run, self.net, self.obs_keys, self.crowd_cfg, self.strategy.reward_bonus())
         self.stored_keys += [k for k in self.update_part.stored_keys() if k not in self.stored_keys]
         self.log = None
         self.wandb = None
         self._restored: dict[str, Any] | None = None
         self._stop_requested = False
-        self.predictor_loss = math.nan  # mean predictor loss of the last batch's updates (NaN: none)
-        self._predictor_loss_sum = 0.0
+        # the learners' scalars: means over the last batch's updates (NaN: none)
+        self.learner_scalars = dict.fromkeys(self._learner_scalar_names(), math.nan)
+        self._learner_sums: dict[str, float] = {}
         self._part_losses: dict[str, list[float]] = {}  # losses of the update's later batches since the last log
         # (event, return, steps, goal distance) of finished episodes not yet logged (logged by 20)
         self._pending_episodes: list[tuple[int, float, int, float]] = []
@@ -153,21 +153,14 @@ class Trainer:
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
             "config": self.config_dict,
             "wandb_id": self.wandb.id if self.wandb else None,
-            # for an exact resume: the in-flight episodes, the finished ones not yet logged, the last bonus stats
+            # for an exact resume: the in-flight episodes, the finished ones not yet logged
             "env": self.env.base_env.snapshot() if self.env.base_env.state is not None else None,
             "pending_episodes": list(self._pending_episodes),
-            "intrinsic_stats": dict(self.intrinsic.last_stats) if self.intrinsic is not None else None,
-            # the running statistics of the bonus's normalisers (obs, reward, terminal value)
-            "intrinsic_norm": self.intrinsic.stats_state_dict() if self.intrinsic is not None else None,
             "update_part": self.update_part.state_dict(),
         }
-        if self.bonus is not None:
-            payload["bonus"] = self.bonus.state_dict()
-            if getattr(self.bonus, "optimizer", None) is not None:
-                payload["bonus_optimizer"] = self.bonus.optimizer.state_dict()
-        if self.predictor_optimizer is not None:
-            payload["predictor"] = self.predictor.state_dict()
-            payload["predictor_optimizer"] = self.predictor_optimizer.state_dict()
+        # the strategy's and the learners' own top-level keys
+        for part in (self.strategy, *self.learners):
+            _merge(payload, part.state_dict(), type(part).__name__)
         if self.run.train.save_buffer:
             payload["buffer"] = buffer_state_dict(self.buffer)  # unwritten slots zeroed: identical runs, same bytes
         return payload
@@ -182,17 +175,8 @@ class Trainer:
         self._set_rng(data)
         self._pending_episodes = [tuple(e) for e in data["pending_episodes"]]  # (event, return, steps, goal distance)
         self.update_part.load_state_dict(data.get("update_part", {}))  # a checkpoint before parts: none had state
-        if self.intrinsic is not None:
-            if data.get("intrinsic_stats") is not None:
-                self.intrinsic.last_stats = dict(data["intrinsic_stats"])
-            self.intrinsic.load_stats_state_dict(data["intrinsic_norm"])
-        if self.bonus is not None:
-            self.bonus.load_state_dict(data["bonus"])
-            if "bonus_optimizer" in data:
-                self.bonus.optimizer.load_state_dict(data["bonus_optimizer"])
-        if self.predictor_optimizer is not None:
-            self.predictor.load_state_dict(data["predictor"])
-            self.predictor_optimizer.load_state_dict(data["predictor_optimizer"])
+        for part in (self.strategy, *self.learners):
+            part.load_state_dict(data)
         if "buffer" in data:
             self.buffer.load_state_dict(data["buffer"])
 
@@ -245,7 +229,7 @@ class Trainer:
             self.wandb = WandbMirror(self.dir, self.config_dict, run.logger.project, run.logger.mode,
                                      resume_data.get("wandb_id") if resume_data else None)
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
-        self._set_schedules()  # a resumed run acts with the schedules of its frame count, not their start
+        self.strategy.schedule(c.frames)  # a resumed run acts with the schedules of its frame count, not their start
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
             summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
             self.write_status("trained", **summary)
@@ -270,9 +254,7 @@ class Trainer:
                 tick = time.perf_counter()
                 loss_value = self._update(frames)
                 timers["update"] += time.perf_counter() - tick
-                self._set_schedules()
-                if run.exploration.name == "noisy":
-                    reset_noise(self.net)  # a fresh noise sample for the next batch's actions
+                self.strategy.before_collection(c.frames)
                 if c.frames - c.last_val >= t.val_every_frames or c.frames >= t.total_frames:
                     tick = time.perf_counter()
                     self._validate()
@@ -282,8 +264,7 @@ class Trainer:
                     recent.clear()
                 if bar is not None:
                     bar.update(frames)
-                    bar.set_postfix(eps=f"{float(self.egreedy.eps):.3f}", episodes=c.episodes,
-                                    best_val_score=f"{c.best_val:.3f}")
+                    bar.set_postfix(**self.strategy.progress(), episodes=c.episodes, best_val_score=f"{c.best_val:.3f}")
                 if c.frames - c.last_checkpoint >= t.checkpoint_every_frames or c.frames >= t.total_frames:
                     c.last_checkpoint = c.frames
                     self.save("last.pt")
@@ -308,19 +289,13 @@ class Trainer:
                 "best_val_score": c.best_val,  # validation success + 1e-3 * return
                 "best_frames": c.best_frames, "timers_s": timers}
 
-    def _set_schedules(self) -> None:
-        """ε and the dropout p for the frame count reached (before each collected batch)."""
-        x, frames = self.run.exploration, self.counters.frames
-        self.egreedy.eps.fill_(linear_schedule(x.eps_start, x.eps_end, x.anneal_frames, frames))
-        if x.name == "dropout":
-            set_dropout_p(self.net, linear_schedule(x.dropout_start, x.dropout_end, x.anneal_frames, frames))
-
     def _update(self, frames: int) -> float:
         t, c = self.run.train, self.counters
         c.update_credit += frames * t.updates_per_frame
         n = int(c.update_credit)
         c.update_credit -= n
-        self.predictor_loss, self._predictor_loss_sum = math.nan, 0.0
+        self.learner_scalars = dict.fromkeys(self.learner_scalars, math.nan)
+        self._learner_sums = dict.fromkeys(self.learner_scalars, 0.0)
         if c.frames < t.warmup_frames:  # warm-up of a fresh run: no updates owed
             return math.nan
         if len(self.buffer) < max(t.batch_size, min(t.warmup_frames, t.buffer_size)):
@@ -330,20 +305,25 @@ class Trainer:
         total = 0.0
         for _ in range(n):
             total += self.update_once(self.buffer.sample())
-        if n and self.predictor_optimizer is not None:
-            self.predictor_loss = self._predictor_loss_sum / n
-        params = [*self.net.parameters(), *(self.predictor.parameters() if self.predictor is not None else ())]
+        if n:
+            self.learner_scalars = {k: total_k / n for k, total_k in self._learner_sums.items()}
+        params = [*self.net.parameters(), *(p for learner in self.learners for p in learner.parameters())]
         if n and not bool(torch.stack([torch.isfinite(p).all() for p in params]).all()):  # one sync
-            raise NonFiniteError(f"the Q network's weights became non-finite by update {c.updates} "
-                                 f"(frame {c.frames}); lower train.lr or check the rewards")
+            raise NonFiniteError(f"the weights of the Q network or of an auxiliary learner became non-finite by update "
+                                 f"{c.updates} (frame {c.frames}); lower train.lr or check the rewards")
         return total / max(n, 1)
 
+    def _learner_scalar_names(self) -> list[str]:
+        return [name for learner in self.learners for name in learner.scalar_names()]
+
     def update_once(self, sample: TensorDictBase) -> float:
-        """One update on a sampled batch: a gradient step on each batch of the update part (the sample,
-        then any simulated one), the predictor's step, the target copy when it is due; returns the
-        loss of the first batch."""
-        if self.run.exploration.name == "noisy":
-            reset_noise(self.loss)  # independent noise for the online and the target network
+        """One update on a sampled batch: each auxiliary learner's step on it, then a gradient step on
+        each batch of the update part (the sample, then any simulated one), the target copy when it
+        is due; returns the loss of the first batch."""
+        for learner in self.learners:  # before the Q steps, which may read what they learn (a simulated batch's reward)
+            for name, value in learner.step(sample).items():
+                self._learner_sums[name] = self._learner_sums.get(name, 0.0) + value
+        self.strategy.before_update(self.loss)
         loss = None
         for name, batch in self.update_part.batches(sample):
             value = self.loss.loss_and_grad(batch)["loss"]  # gradients into the Q network's .grad
@@ -352,8 +332,6 @@ class Trainer:
                 loss = value
             else:
                 self._part_losses.setdefault(name, []).append(float(value))
-        if self.predictor_optimizer is not None:
-            self._predictor_loss_sum += self.predictor_step(sample)
         self.counters.updates += 1
         if self.counters.updates % self.updates_per_copy == 0:
             self.loss.update_target()
@@ -363,18 +341,10 @@ class Trainer:
                                  f"(frame {self.counters.frames}); lower train.lr or check the rewards")
         return value
 
-    def predictor_step(self, sample: TensorDictBase) -> float:
-        """One Adam step of the crowd predictor: MSE to the sampled transitions' real next human states."""
-        loss = self.predictor_loss_fn.loss_and_grad(sample.get("robot"), sample.get("humans"),
-                                                    sample.get(("next", "humans")),
-                                                    sample.get(MASK_KEY) if MASK_KEY in self.obs_keys else None)
-        self.predictor_optimizer.step()
-        return float(loss)
-
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
         c.last_val = c.frames
-        with noise_disabled(self.net):  # greedy on the mean weights (no-op without noisy layers)
+        with self.strategy.evaluating():  # the strategy's greedy setting (e.g. its mean weights)
             metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
@@ -384,8 +354,8 @@ class Trainer:
         if score > c.best_val:
             c.best_val, c.best_frames = score, c.frames
             best = {"net": self.net.state_dict(), "config": self.config_dict, "frames": c.frames, "val": metrics.as_dict()}
-            if self.predictor_optimizer is not None:
-                best["predictor"] = self.predictor.state_dict()
+            for learner in self.learners:  # what the planner acts with (the crowd predictor)
+                best.update(learner.policy_state())
             save_checkpoint(self.ckpt_dir / "best.pt", best, self.fingerprint)
             row["val/best"] = 1
         self.emit(row)
@@ -407,10 +377,9 @@ class Trainer:
             # how far from its goal a timed-out robot stopped: hovering near it, or gone far away
             "train/timeout_goal_distance": sum(timeout_dist) / len(timeout_dist) if timeout_dist else math.nan,
             "train/navigation_time": (sum(succ_steps) / len(succ_steps) * self.crowd_cfg.time_step) if succ_steps else math.nan,
-            "train/epsilon": float(self.egreedy.eps),
+            **{f"train/{k}": v for k, v in self.strategy.scalars().items()},
             "train/loss": loss_value,
-            **({"train/predictor_loss": self.predictor_loss} if self.predictor_optimizer is not None else {}),
-            **({f"train/intrinsic_{k}": v for k, v in self.intrinsic.last_stats.items()} if self.intrinsic else {}),
+            **{f"train/{k}": v for k, v in self.learner_scalars.items()},
             **{f"train/loss_{name}": sum(v) / len(v) for name, v in self._part_losses.items() if v},
             **{f"train/{k}": v for k, v in self.update_part.scalars().items()},
             **{f"time/{k}_s": v for k, v in timers.items()},
@@ -433,6 +402,14 @@ class Trainer:
         if self.wandb is not None:
             self.wandb.close()
             self.wandb = None
+
+
+def _merge(payload: dict[str, Any], part: dict[str, Any], owner: str) -> None:
+    """Add ``part``'s top-level checkpoint keys to ``payload``; ``KeyError`` for a key already there."""
+    clash = sorted(set(part) & set(payload))
+    if clash:
+        raise KeyError(f"{owner} writes checkpoint keys already taken: {clash}")
+    payload.update(part)
 
 
 def _finished_episodes(batch: TensorDictBase) -> list[tuple[int, float, int, float]]:

@@ -1,4 +1,8 @@
-"""The exploration variant of a run (``exploration.name``), built from its config.
+"""The exploration variant of a run (``exploration.name``) on the crowd's networks: the Q network
+its strategy modifies (:func:`make_network`) and what its replay transform reads from the run
+(:func:`replay_context`). The variants themselves are
+:class:`~crowdrl.exploration.strategy.ExplorationStrategy` instances (``docs/mdp.md``,
+"Exploration variants"):
 
 * ``egreedy``: the plain dueling network, ε-greedy acting.
 * ``noisy``: every head layer a factorised NoisyLinear (σ0), ε = 0.
@@ -17,16 +21,11 @@ from __future__ import annotations
 
 from typing import Callable
 
-from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform
-from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer
-from crowdrl.exploration.schedule import make_schedule
-from crowdrl.exploration.dropout import add_action_dropout
-from crowdrl.exploration.intrinsic import seeded_init
-from crowdrl.exploration.noisy import noisify_head
+from crowdrl.envs.robot_centric import ENTITY_DIM
+from crowdrl.exploration import ExplorationStrategy, ReplayContext, make_strategy
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
-from crowdrl.envs.robot_centric import ENTITY_DIM
-from crowdrl.training.config import INTRINSIC, RunConfig, beta_schedule_of, sees_obstacles
+from crowdrl.training.config import RunConfig, sees_obstacles
 
 ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
 
@@ -37,54 +36,24 @@ def encoder_kwargs(run: RunConfig) -> dict:
     return {"human_dim": ENTITY_DIM} if sees_obstacles(run) else {}
 
 
-def make_network(run: RunConfig, num_actions: int = 81) -> CrowdQNetwork:
-    """The Q network of the run's encoder and exploration variant (fresh parameters)."""
+def make_network(run: RunConfig, num_actions: int = 81, strategy: ExplorationStrategy | None = None) -> CrowdQNetwork:
+    """The Q network of the run's encoder (fresh parameters), modified by its exploration
+    ``strategy`` (default: ``make_strategy(run.exploration)``)."""
     net = make_q_network(run.encoder.name, num_actions=num_actions, **encoder_kwargs(run))
-    x = run.exploration
-    if x.name == "noisy":
-        noisify_head(net.head, x.sigma0)
-    elif x.name == "dropout":
-        add_action_dropout(net.head, x.dropout_start)
-    return net
+    if strategy is None:
+        strategy = make_strategy(run.exploration)
+    return strategy.modify_network(net)
 
 
-def make_bonus(run: RunConfig, obs_keys: list[str], num_actions: int = 81) -> IntrinsicBonus | None:
-    """ICM or RE3 on its own encoder of the run's architecture (``None`` for other variants).
-
-    Initialised from a seed derived from the run seed without touching the global RNG, so a
-    ``beta = 0`` run follows the extrinsic-only run bit for bit.
-    """
-    x = run.exploration
-    if x.name not in INTRINSIC:
-        return None
-    seed = 1_000_003 * (run.seed + 1)
-    with seeded_init(seed):
-        encoder = make_encoder(run.encoder.name, **encoder_kwargs(run))
-    if x.name == "icm":
-        return ICM(encoder, num_actions, obs_keys, lr=x.icm_lr, detach_target=x.icm_detach_target,
-                   feature_norm=x.icm_feature_norm, seed=seed + 1)
-    return RE3(encoder, obs_keys, k=x.re3_k, seed=seed + 1)
-
-
-def make_intrinsic_transform(run: RunConfig, bonus: IntrinsicBonus, obs_keys: list[str],
-                             frames: Callable[[], int]) -> IntrinsicRewardTransform:
-    """The sample-time reward transform with the run's β schedule and stable-bonus options;
-    ``frames()`` gives the frame count a scheduled β reads."""
-    x = run.exploration
-    beta = make_schedule(beta_schedule_of(x), x.beta, end=x.beta_end, duration=x.anneal_frames, decay=x.beta_decay,
-                         clock=frames)
+def replay_context(run: RunConfig, obs_keys: list, num_actions: int, frames: Callable[[], int]) -> ReplayContext:
+    """What an exploration strategy's replay transform reads from ``run``: the one-step successor's
+    keys (``ONE_STEP_KEY`` with n-step returns), a fresh encoder of the run's architecture, a seed
+    derived from the run seed, and ``frames()``, the frame count a scheduled β reads."""
     next_keys = [("next", k) for k in obs_keys] if run.train.n_step == 1 else [(ONE_STEP_KEY, k) for k in obs_keys]
-    reward_norm = RewardNormalizer(x.reward_norm, center=x.reward_center, clip=x.reward_clip)
-    return IntrinsicRewardTransform(
-        bonus, beta, obs_keys=obs_keys, next_obs_keys=next_keys,
-        obs_norm=ObservationNormalizer(clip=x.obs_clip) if x.obs_norm else None,
-        reward_norm=None if reward_norm.is_identity else reward_norm,
-        terminal_value_gamma=run.train.gamma if x.terminal_value else None)
+    return ReplayContext(obs_keys=list(obs_keys), next_obs_keys=next_keys, num_actions=num_actions,
+                         gamma=run.train.gamma, frames=frames,
+                         make_encoder=lambda: make_encoder(run.encoder.name, **encoder_kwargs(run)),
+                         seed=1_000_003 * (run.seed + 1), device=run.device)
 
 
-def uses_one_step_successor(run: RunConfig) -> bool:
-    """Whether the buffer must keep ``s_{t+1}`` next to the n-step successor."""
-    return run.exploration.name in INTRINSIC and run.train.n_step > 1
-
-
-__all__ = ["encoder_kwargs", "make_network", "make_bonus", "make_intrinsic_transform", "uses_one_step_successor", "ONE_STEP_KEY"]
+__all__ = ["encoder_kwargs", "make_network", "replay_context", "ONE_STEP_KEY"]
