@@ -32,3 +32,15 @@ def test_module_examples_pass(name):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, report=True)
     assert result.attempted > 0
     assert result.failed == 0, f"{result.failed} of {result.attempted} examples of {name} failed (see the output above)"
+
+
+# modules whose functions carry short examples (without an Examples: section): they pass too
+FUNCTION_EXAMPLES = ("crowdrl.training.compat", "crowdrl.training.validation")
+
+
+@pytest.mark.parametrize("name", FUNCTION_EXAMPLES)
+def test_function_examples_pass(name):
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,
+                             report=True)
+    assert result.attempted > 0
+    assert result.failed == 0, f"{result.failed} of {result.attempted} examples of {name} failed (see the output above)"

@@ -228,33 +228,33 @@ def test_train_py_refuses_a_planner_that_cannot_fit_with_exit_code_2(tmp_path):
 @pytest.mark.parametrize("encoder", ["sgd3qn", "sarl", "lstm_rl", "mp_rgl"])
 def test_every_preset_passes_the_resource_checks(preset, encoder, monkeypatch):
     """On a machine with 16 GiB available (faked: the test does not depend on this machine's free memory)."""
-    from crowdrl.training import config
+    from crowdrl.training import resources
 
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": 16 * 2**30)
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": 16 * 2**30)
     run = validate(_compose(f"preset={preset}", f"encoder={encoder}"))
     assert run.planning.enabled  # conf/config.yaml plans by default: the planner's bound is checked too
 
 
 def test_the_resource_checks_compare_with_the_memory_available(monkeypatch):
-    from crowdrl.training import config
+    from crowdrl.training import resources
 
     run = validate(_compose("preset=demo"))
-    need = config.buffer_bytes(run) + config.planner_bytes(run)
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": need)
+    need = resources.buffer_bytes(run) + resources.planner_bytes(run)
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": need)
     validate(run)  # exactly enough
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": config.buffer_bytes(run))
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": resources.buffer_bytes(run))
     with pytest.raises(ConfigError, match=r"^planning\.depth/planning\.width: the planner expands 10000 states per "
                                           r"step .*B = 1000.* of up to 10 humans"):
         validate(run)
     saved = dataclasses.replace(run, train=dataclasses.replace(run.train, save_buffer=True))
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": 2 * config.buffer_bytes(run))
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": 2 * resources.buffer_bytes(run))
     with pytest.raises(ConfigError, match=r"^train\.buffer_size: .*x3 with train\.save_buffer=true.*save_buffer=false"):
         validate(saved)
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": None)  # unknown: no refusal
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": None)  # unknown: no refusal
     validate(saved)
     with_planning = validate(_compose("preset=demo", "planning.depth=2"))
-    assert config.planned_states(with_planning) == 1000 * (10 + 100)
-    assert config.planned_states(validate(_compose("preset=demo", "planning.enabled=false"))) == 0
+    assert resources.planned_states(with_planning) == 1000 * (10 + 100)
+    assert resources.planned_states(validate(_compose("preset=demo", "planning.enabled=false"))) == 0
 
 
 @pytest.mark.parametrize("overrides", [["planning.enabled=false"], ["planning.enabled=true"],
@@ -481,14 +481,14 @@ def test_a_second_reproduce_py_on_the_same_out_is_refused_before_it_writes(tmp_p
 
 
 def test_reproduce_py_checks_every_run_and_seed_before_training(tmp_path, monkeypatch):
-    from crowdrl.training import config
+    from crowdrl.training import resources
 
     reproduce = _reproduce_module()
     with pytest.raises(reproduce.PlanError, match=r"^seeds: must be distinct integers in 0\.\.2\*\*63-1"):
         _plan(reproduce, tmp_path / "o", seeds=[0, 2**63])
     plan = _plan(reproduce, tmp_path / "o")
     reproduce.check_runs(plan)
-    monkeypatch.setattr(config, "available_memory", lambda device="cpu": 1000)
+    monkeypatch.setattr(resources, "available_memory", lambda device="cpu": 1000)
     with pytest.raises(reproduce.PlanError, match=r"^the egreedy runs \(.*\): train\.buffer_size: "):
         reproduce.check_runs(plan)
     assert not (tmp_path / "o").exists()

@@ -32,7 +32,8 @@ def compose_run(overrides: list[str]):
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
-    from crowdrl.training.config import RunConfig, validate
+    from crowdrl.training.config import RunConfig
+    from crowdrl.training.validation import validate
 
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -45,7 +46,7 @@ def compose_run(overrides: list[str]):
 def default_out(run) -> Path:
     """``runs/demo-<time>-<scenario>-s<seed>-<uid>`` (in the current directory): demos started in the same
     second never share a folder."""
-    from crowdrl.training.config import run_uid
+    from crowdrl.training.resolvers import run_uid
 
     return Path("runs") / time.strftime(f"demo-%Y%m%d-%H%M%S-{run.env.scenario}-s{run.seed}-{run_uid()}")
 

@@ -26,7 +26,7 @@ CONF_DIR = str(config_dir())
 
 
 def _register_resolvers() -> None:
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()  # ${crowdrl_uid:} in the default eval folder's name
 
@@ -39,7 +39,8 @@ def check_keys(c: dict, overrides: list[str]) -> None:
     ``+`` (``+eval.episods=5``), a group of train.py (``+encoder=sarl``), an ``env.*`` key other than
     ``env.scenario`` (the crowd size is ``eval.num_humans``). The known keys are those of
     ``conf/evaluate.yaml`` and of the ``conf/env/`` files."""
-    from crowdrl.training.config import ConfigError, unknown_keys
+    from crowdrl.training.config import ConfigError
+    from crowdrl.training.validation import unknown_keys
 
     known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "evaluate.yaml"))
     known.pop("defaults", None)
@@ -73,7 +74,7 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
 
     from crowdrl.evaluation.report import markdown_table, write_records
     from crowdrl.training import CheckpointError, ConfigError
-    from crowdrl.training.config import check_device, check_threads
+    from crowdrl.training.validation import check_device, check_threads
     from crowdrl.training.pipeline import evaluate_spec
 
     c = OmegaConf.to_container(cfg, resolve=True)

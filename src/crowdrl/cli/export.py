@@ -39,7 +39,7 @@ def fail(message: str) -> NoReturn:
 def main(cfg: DictConfig) -> dict:
     c = OmegaConf.to_container(cfg, resolve=True)
     from crowdrl.export import FORMATS
-    from crowdrl.training.config import unknown_keys
+    from crowdrl.training.validation import unknown_keys
 
     known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "export.yaml"))
     known.pop("defaults", None)

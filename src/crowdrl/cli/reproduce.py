@@ -172,7 +172,9 @@ def check_runs(plan: Plan) -> None:
     from hydra.core.config_store import ConfigStore
     from hydra.core.global_hydra import GlobalHydra
 
-    from crowdrl.training.config import ConfigError, RunConfig, register_resolvers, validate
+    from crowdrl.training.config import ConfigError, RunConfig
+    from crowdrl.training.resolvers import register_resolvers
+    from crowdrl.training.validation import validate
 
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     register_resolvers()

@@ -22,7 +22,7 @@ CONF_DIR = str(config_dir())
 
 
 def _register_resolvers() -> None:
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
 
@@ -111,7 +111,7 @@ def resumed_config(cfg: DictConfig, run_dir: Path, overrides: list[str]):
     """The run folder's own ``config.yaml`` (with ``resume`` set). Command-line overrides other than
     ``resume`` and ``hydra.*`` must agree with it; any that do not are refused, by name."""
     from crowdrl.training import ConfigError, validate
-    from crowdrl.training.config import resume_conflicts, stored_config
+    from crowdrl.training.compat import resume_conflicts, stored_config
 
     if not (run_dir / "checkpoints" / "last.pt").is_file():
         raise ConfigError(f"resume={run_dir}: no checkpoints/last.pt there")

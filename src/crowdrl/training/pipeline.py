@@ -15,10 +15,12 @@ from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
-from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, stored_config, to_dict, validate
+from crowdrl.training.compat import stored_config
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict
 from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
+from crowdrl.training.validation import validate
 from crowdrl.training.variants import make_network
 
 TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
@@ -255,7 +257,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     from crowdrl.evaluation.rollout import kept_bytes
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
-    from crowdrl.training.config import available_memory, planned_states, planner_bytes
+    from crowdrl.training.resources import available_memory, planned_states, planner_bytes
 
     if (checkpoint is None) == (policy is None):
         raise ValueError("give exactly one of checkpoint=PATH or policy=NAME")

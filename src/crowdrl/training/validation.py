@@ -1,0 +1,237 @@
+"""Validation of a run configuration: ``validate(cfg)`` turns a Hydra/OmegaConf tree, a dict of
+overrides or a :class:`~crowdrl.training.config.RunConfig` into a checked ``RunConfig``, and every
+refusal is a :class:`~crowdrl.training.config.ConfigError` naming the key and what is allowed."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from crowdrl.models import ENCODERS
+from crowdrl.models.predictor import PREDICTORS
+from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
+from crowdrl.sim.kinematics import NUM_ACTIONS
+from crowdrl.sim.rng import MAX_SEED
+from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, INTRINSIC,
+                                     INTRINSIC_OPTIONS, LOGGERS, WANDB_MODES, ConfigError, ExplorationConfig, RunConfig,
+                                     crowd_range)
+from crowdrl.training.resources import check_resources
+
+
+def check(cond: bool, key: str, msg: str) -> None:
+    """Raise :class:`ConfigError` ``"<key>: <msg>"`` unless ``cond``."""
+    if not cond:
+        raise ConfigError(f"{key}: {msg}")
+
+
+def one_of(value: Any, key: str, allowed: tuple | list) -> None:
+    """Raise :class:`ConfigError` naming ``key`` and the ``allowed`` values unless ``value`` is one of them."""
+    check(value in allowed, key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
+
+
+def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> RunConfig:
+    """Check a config tree against the schema and the allowed values; return it typed.
+
+    With ``resources`` (the default) also what the run would need of this machine's memory
+    (:func:`~crowdrl.training.resources.check_resources`); a checkpoint's stored config is read with ``resources=False``."""
+    if isinstance(cfg, RunConfig):
+        cfg = OmegaConf.structured(cfg)
+    schema = OmegaConf.structured(RunConfig)
+    try:
+        merged = OmegaConf.merge(schema, OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg)
+    except Exception as exc:  # omegaconf's messages name the key; keep them
+        raise ConfigError(str(exc).splitlines()[0] + _hint(exc)) from None
+    run: RunConfig = OmegaConf.to_object(merged)
+    for key, value in _floats(run):
+        check(math.isfinite(value), key, f"must be a finite number, got {value}")
+    e, t, x = run.env, run.train, run.exploration
+    one_of(e.scenario, "env.scenario", SCENARIOS)
+    check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
+    for key in ("min_humans", "max_humans"):
+        value = getattr(e, key)
+        check(value is None or 1 <= value <= MAX_HUMANS, f"env.{key}", f"must lie in 1..{MAX_HUMANS} or be null, got {value}")
+    low, high = crowd_range(e)
+    check(low <= high, "env.min_humans/env.max_humans",
+          f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
+    one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
+    try:  # the obstacle geometry, the lidar, the humans' model: CrowdConfig's checks, whose messages start with the key
+        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
+    except ValueError as exc:
+        raise ConfigError(f"env.{exc}") from None
+    one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
+    from crowdrl.exploration.strategy import strategy_names
+
+    one_of(x.name, "exploration.name", strategy_names())
+    check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",
+          f"need 0 <= eps_end <= eps_start <= 1, got {x.eps_start} -> {x.eps_end}")
+    check(x.anneal_frames >= 1, "exploration.anneal_frames", f"must be >= 1, got {x.anneal_frames}")
+    check(x.sigma0 > 0, "exploration.sigma0", f"must be > 0, got {x.sigma0}")
+    for key in ("dropout_start", "dropout_end"):
+        check(0 <= getattr(x, key) < 1, f"exploration.{key}", f"must lie in [0, 1), got {getattr(x, key)}")
+    check(x.beta >= 0, "exploration.beta", f"must be >= 0, got {x.beta}")
+    check(x.beta_end is None or x.beta_end >= 0, "exploration.beta_end", f"must be >= 0 or null, got {x.beta_end}")
+    _check_intrinsic_options(x)
+    check(x.icm_lr > 0, "exploration.icm_lr", f"must be > 0, got {x.icm_lr}")
+    check(x.re3_k >= 1, "exploration.re3_k", f"must be >= 1, got {x.re3_k}")
+    check(x.name != "re3" or x.re3_k < run.train.batch_size, "exploration.re3_k",
+          f"must lie in 1..train.batch_size-1 ({run.train.batch_size - 1}), got {x.re3_k}")
+    one_of(run.logger.name, "logger.name", LOGGERS)
+    one_of(run.logger.mode, "logger.mode", WANDB_MODES)
+    for key in ("num_envs", "steps_per_batch", "total_frames", "buffer_size", "batch_size", "n_step",
+                "target_update_frames", "val_every_frames", "val_episodes", "checkpoint_every_frames", "test_episodes"):
+        value = getattr(t, key)
+        check(value >= 1, f"train.{key}", f"must be >= 1, got {value}")
+    check(t.warmup_frames >= 0, "train.warmup_frames", f"must be >= 0, got {t.warmup_frames}")
+    check(t.n_step <= t.steps_per_batch, "train.n_step",
+          f"({t.n_step}) must not exceed train.steps_per_batch ({t.steps_per_batch}): windows end with the batch")
+    check(t.batch_size <= t.buffer_size, "train.batch_size",
+          f"({t.batch_size}) must not exceed train.buffer_size ({t.buffer_size})")
+    check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")
+    check(not x.terminal_value or t.gamma < 1, "exploration.terminal_value",
+          f"values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, got {t.gamma}")
+    check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
+    check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
+    check_counterfactual(run)
+    p = run.planning
+    check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
+    check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
+    one_of(p.predictor, "planning.predictor", PREDICTORS)
+    check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
+    check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
+    check_threads(run.threads)
+    check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
+          f"({t.total_frames}) must exceed train.batch_size ({t.batch_size}) and train.warmup_frames "
+          f"({t.warmup_frames}): with this budget not a single update could run")
+    check(run.resume is None or run.resume.strip() != "", "resume",
+          "is empty (resume= with nothing after it, e.g. resume=$RUN with RUN unset): give the run folder to "
+          "continue, resume=runs/<folder>, or leave resume out to start a new run")
+    check(run.run_dir is None, "run_dir", f"is not used (got {run.run_dir!r}): choose the run folder with "
+          f"hydra.run.dir=<folder> (train.py), out=<folder> (demo.py) or resume=<folder>")
+    check_device(run.device)
+    if resources:
+        check_resources(run)
+        check_logger(run)
+    return run
+
+
+def check_logger(run: RunConfig) -> None:
+    """Refuse (naming ``logger.mode``) a wandb run to start online without credentials: wandb would
+    fail, or wait for a key, once the run folder is written."""
+    from crowdrl.training.scalars import has_wandb_credentials, wandb_mode
+
+    if run.logger.name == "wandb" and wandb_mode(run.logger.mode) == "online" and not has_wandb_credentials():
+        raise ConfigError("logger.mode: online, but wandb has no credentials (no WANDB_API_KEY, no netrc entry): "
+                          "run `wandb login` first, or use logger.mode=offline and `wandb sync` later")
+
+
+def _check_intrinsic_options(x: ExplorationConfig) -> None:
+    from crowdrl.exploration.icm import FEATURE_NORMS
+    from crowdrl.exploration.normalize import REWARD_SCALES
+    from crowdrl.exploration.schedule import SCHEDULES, beta_schedule_of
+
+    if x.name not in INTRINSIC:
+        defaults = ExplorationConfig()
+        for key in INTRINSIC_OPTIONS:
+            check(getattr(x, key) == getattr(defaults, key), f"exploration.{key}",
+                  f"applies to the intrinsic variants ({', '.join(INTRINSIC)}) only; exploration.name is {x.name!r}")
+    check(x.beta_schedule is None or x.beta_schedule in SCHEDULES, "exploration.beta_schedule",
+          f"got {x.beta_schedule!r}; allowed: {', '.join(SCHEDULES)} or null")
+    schedule = beta_schedule_of(x)
+    check(schedule != "linear" or x.beta_end is not None, "exploration.beta_end",
+          "beta_schedule=linear needs exploration.beta_end (the value reached after exploration.anneal_frames)")
+    check(schedule == "linear" or x.beta_end is None, "exploration.beta_end",
+          f"is set ({x.beta_end}) but beta_schedule={schedule} does not use it; use beta_schedule=linear or beta_end=null")
+    check(schedule != "exp" or x.beta_decay is not None, "exploration.beta_decay",
+          "beta_schedule=exp needs exploration.beta_decay (β_t = β (1 - beta_decay)^frames)")
+    check(schedule == "exp" or x.beta_decay is None, "exploration.beta_decay",
+          f"is set ({x.beta_decay}) but beta_schedule={schedule} does not use it; use beta_schedule=exp or beta_decay=null")
+    check(x.beta_decay is None or 0 <= x.beta_decay < 1, "exploration.beta_decay",
+          f"must lie in [0, 1), got {x.beta_decay}")
+    one_of(x.reward_norm, "exploration.reward_norm", REWARD_SCALES)
+    check(x.reward_clip is None or x.reward_clip > 0, "exploration.reward_clip", f"must be > 0 or null, got {x.reward_clip}")
+    check(x.obs_clip > 0, "exploration.obs_clip", f"must be > 0, got {x.obs_clip}")
+    one_of(x.icm_feature_norm, "exploration.icm_feature_norm", FEATURE_NORMS)
+
+
+def check_counterfactual(run: RunConfig) -> None:
+    """``train.counterfactual``'s keys; it needs humans that ignore the robot (their real next state is
+    then the next state after any action) and the unicycle's discrete actions."""
+    c = run.train.counterfactual
+    one_of(c.mode, "train.counterfactual.mode", COUNTERFACTUAL_MODES)
+    one_of(c.actions, "train.counterfactual.actions", COUNTERFACTUAL_ACTIONS)
+    check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
+          f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
+    check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
+    humans = CrowdConfig(human_model=run.env.human_model, robot_visible=run.env.robot_visible)
+    if c.mode != "off" and humans.humans_react_to_robot:
+        raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
+                          f"after another action, which is exact only while they ignore the robot; with "
+                          f"env.robot_visible=true the {run.env.human_model} humans react to it (set "
+                          f"train.counterfactual.mode=off or env.robot_visible=false)")
+
+
+def check_threads(threads: Any, key: str = "threads") -> None:
+    """An integer >= 1 (torch threads), otherwise a :class:`ConfigError` naming ``key``."""
+    check(isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1, key,
+          f"must be an integer >= 1, got {threads!r}")
+
+
+def unknown_keys(cfg: Any, reference: Any, prefix: str = "") -> list[str]:
+    """The dotted keys of the nested dict ``cfg`` that the nested dict ``reference`` lacks (a key
+    added with ``+key=value`` that nothing reads); below a key whose reference is not a dict, nothing.
+
+    >>> unknown_keys({"eval": {"episods": 5, "seed": 0}, "encoder": {"name": "sarl"}}, {"eval": {"seed": 0}})
+    ['eval.episods', 'encoder']
+    """
+    if not (isinstance(cfg, dict) and isinstance(reference, dict)):
+        return []
+    out = []
+    for key, value in cfg.items():
+        if key not in reference:
+            out.append(f"{prefix}{key}")
+        else:
+            out += unknown_keys(value, reference[key], f"{prefix}{key}.")
+    return out
+
+
+def check_device(device: str, key: str = "device") -> None:
+    """``cpu``, or a CUDA device that exists on this machine; otherwise a :class:`ConfigError`."""
+    import torch
+
+    check(device == "cpu" or re.fullmatch(r"cuda(:\d+)?", device) is not None, key,
+          f"got {device!r}; allowed: cpu, cuda, cuda:<index>")
+    if device.startswith("cuda"):
+        check(torch.cuda.is_available(), key, f"{device!r} requested but CUDA is not available on this machine "
+                                              f"(torch.cuda.is_available() is False); use {key}=cpu")
+        index = int(device.split(":")[1]) if ":" in device else 0
+        count = torch.cuda.device_count()
+        check(index < count, key, f"{device!r} does not exist: this machine has {count} CUDA device(s)")
+
+
+def _floats(node: Any, prefix: str = "") -> list[tuple[str, float]]:
+    """Every float field of a (nested) config dataclass, with its dotted key."""
+    out = []
+    for f in dataclasses.fields(node):
+        value, key = getattr(node, f.name), f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            out += _floats(value, f"{key}.")
+        elif isinstance(value, float):
+            out.append((key, value))
+    return out
+
+
+def _hint(exc: Exception) -> str:
+    key = getattr(exc, "full_key", None)
+    if not key:
+        return ""
+    parent = key.rsplit(".", 1)[0] if "." in key else ""
+    node: Any = RunConfig()
+    for part in filter(None, parent.split(".")):
+        node = getattr(node, part, None)
+    if dataclasses.is_dataclass(node):
+        return f" (key {key!r}; allowed keys here: {', '.join(f.name for f in dataclasses.fields(node))})"
+    return f" (key {key!r})"
