@@ -1,0 +1,132 @@
+"""The reproduction's table: per method and test scenario, the mean over seeds of each metric with
+its 95 % interval (rliable), the paper's value and the probability of improving on ε-greedy, written
+as ``table.md``, ``table.json`` and ``table.csv``."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from crowdrl.evaluation.report import paper_value, read_eval_record, read_summary
+from crowdrl.reproduction.plan import DEFAULT_ENCODER, Plan, eval_path
+from crowdrl.tables import interval_cell, markdown_table
+
+METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
+
+
+def collect(plan: Plan) -> dict[str, Any]:
+    """Every eval record: ``{method: {scenario: [record per seed]}}`` (ORCA: one record)."""
+    records: dict[str, dict[str, list[dict]]] = {}
+    for method in plan.methods:
+        for scenario in plan.scenarios:
+            records.setdefault(method.name, {})[scenario] = [
+                read_eval_record(eval_path(plan.run_dir(method, s), scenario)) for s in plan.seeds]
+    records["orca"] = {sc: [read_eval_record(plan.out / "orca" / f"eval-{sc}" / "eval.json")]
+                       for sc in plan.scenarios}
+    return records
+
+
+def table_rows(plan: Plan, records: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per method and scenario: mean and 95 % CI over seeds of each metric, the paper's value,
+    and P(improvement over the same encoder's ε-greedy) on success rate."""
+    import numpy as np
+
+    from crowdrl.evaluation.stats import mean_interval, probability_of_improvement
+
+    baselines = {m.name: m.baseline.name for m in plan.methods}
+    rows = []
+    for scenario in plan.scenarios:
+        for method, by_scenario in records.items():
+            recs = by_scenario[scenario]
+            row: dict[str, Any] = {"method": method, "scenario": scenario, "seeds": len(recs),
+                                   "episodes": recs[0]["episodes"]}
+            for key in METRICS:
+                values = np.array([r[key] for r in recs], dtype=np.float64)
+                mean, lo, hi = mean_interval({method: values}, reps=plan.reps)[method]
+                row.update({key: mean, f"{key}_lo": lo, f"{key}_hi": hi, f"{key}_paper": paper_value(method, scenario, key),
+                            f"{key}_per_seed": values.tolist()})
+            base_name = baselines.get(method)
+            if base_name is not None and base_name != method and base_name in records:
+                base = np.array([r["success_rate"] for r in records[base_name][scenario]])
+                ours = np.array([r["success_rate"] for r in recs])
+                p, plo, phi = probability_of_improvement(ours, base, reps=plan.reps)
+                row.update({"p_improve": p, "p_improve_lo": plo, "p_improve_hi": phi})
+            rows.append(row)
+    return rows
+
+
+def _cell(row: dict[str, Any], key: str, digits: int) -> str:
+    """The mean over seeds with its interval (from two seeds on), then the paper's value if it has one."""
+    text = interval_cell(row, key, digits, interval=row["seeds"] > 1)
+    paper = row[f"{key}_paper"]
+    return text if text == "–" or math.isnan(paper) else f"{text} ({paper:.{digits}f})"
+
+
+TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg return", "P(improve on ε-greedy)")
+
+
+def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
+    """``table.md``: what was run and how the cells read, then one table per test scenario."""
+    from crowdrl.sim.config import OPEN_SCENARIOS
+
+    seeds = ", ".join(map(str, plan.seeds))
+    what = ("SG-D3QN exploration variants" if plan.encoders == (DEFAULT_ENCODER,)
+            else f"exploration variants of the encoders {', '.join(plan.encoders)}")
+    planning = " with online planning" if plan.planning else ""
+    transfer = [sc for sc in plan.scenarios if sc != plan.train_scenario]
+    paper = " (paper, one seed)" if set(plan.scenarios) & set(OPEN_SCENARIOS) else ""  # the paper has open space only
+    zero_shot = f"; {' and '.join(transfer)} {'is' if len(transfer) == 1 else 'are'} zero-shot" if transfer else ""
+    lines = [f"# crowdrl reproduction: {what}{planning}, budget `{plan.budget}`",
+             "",
+             f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
+             f"{plan.episodes} cases per scenario (test seed 0{zero_shot}). Cells: mean over seeds "
+             f"[95 % stratified-bootstrap CI, rliable, {plan.reps} resamples]{paper}. "
+             "P(improve): probability that the variant's success rate beats ε-greedy's (same encoder) on a random "
+             "pair of seeds "
+             "[95 % CI]. ORCA is deterministic: one evaluation.",
+             ""]
+    run_minutes = [read_summary(plan.run_dir(m, s) / "summary.json")["wall_s"] / 60
+                   for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
+    if run_minutes:
+        lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`): {min(run_minutes):.1f}–"
+                  f"{max(run_minutes):.1f} min."]
+    if wall_s is not None:
+        how = f"jobs={plan.jobs}" if plan.launcher == "local" else "launcher=slurm"
+        lines += [f"Wall-clock of the `reproduce.py` call ({how}) that trained or tested the last runs: "
+                  f"{wall_s / 60:.1f} min."]
+    lines.append("")
+    for scenario in plan.scenarios:
+        cells = [[r["method"], r["seeds"], _cell(r, "success_rate", 3), _cell(r, "collision_rate", 3),
+                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), interval_cell(r, "p_improve", 2)]
+                 for r in rows if r["scenario"] == scenario]
+        lines += [f"## {scenario}", "", markdown_table(TABLE_HEADER, cells), ""]
+    return "\n".join(lines)
+
+
+def recorded_wall_s(plan: Plan) -> float | None:
+    """The wall-clock ``table.json`` in ``out=`` records for the call that trained its last runs, if any."""
+    path = plan.out / "table.json"
+    if not path.exists():
+        return None
+    wall_s = json.loads(path.read_text()).get("wall_s")
+    return float(wall_s) if isinstance(wall_s, (int, float)) else None
+
+
+def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> None:
+    """``table.md``, ``table.json`` (with the manifest and the wall-clock) and ``table.csv`` in ``out=``."""
+    import csv
+    import io
+
+    from crowdrl.files import atomic_write_bytes, atomic_write_json
+
+    atomic_write_bytes(plan.out / "table.md", markdown(plan, rows, wall_s).encode())
+    atomic_write_json(plan.out / "table.json", {"manifest": plan.manifest(), "seeds": list(plan.seeds),
+                                                "wall_s": wall_s, "rows": rows})
+    flat = [{k: v for k, v in r.items() if not k.endswith("_per_seed")} for r in rows]
+    fields = list(dict.fromkeys(k for r in flat for k in r))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields)
+    writer.writeheader()
+    writer.writerows(flat)
+    atomic_write_bytes(plan.out / "table.csv", buf.getvalue().encode())

@@ -1,0 +1,1 @@
+"""The paper's table over seeds (``crowdrl-reproduce``): the plan of runs and where their results live."""

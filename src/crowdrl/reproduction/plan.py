@@ -1,0 +1,204 @@
+"""A reproduction's plan: the methods (encoder x exploration variant) and seeds to train at a named
+budget, checked before anything runs, and where each run's folder and test records live under ``out=``."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from crowdrl.resources import config_dir
+
+CONF_DIR = str(config_dir())
+BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
+LAUNCHERS = ("local", "slurm")
+MANIFEST_FORMAT = 1
+KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher",
+        "threads", "reps", "out", "planning", "counterfactual"}
+COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}  # train.counterfactual's defaults
+
+
+class PlanError(ValueError):
+    """A reproduce.py setting is unknown or out of range."""
+
+
+DEFAULT_ENCODER = "sgd3qn"  # the paper's architecture: its runs and rows are named by the variant alone
+
+
+@dataclass(frozen=True)
+class Method:
+    """One architecture and exploration variant: a row of the table."""
+
+    encoder: str
+    variant: str
+
+    @property
+    def name(self) -> str:
+        return self.variant if self.encoder == DEFAULT_ENCODER else f"{self.encoder}+{self.variant}"
+
+    @property
+    def baseline(self) -> "Method":
+        """The ε-greedy method of the same encoder, which the variant is compared with."""
+        return Method(self.encoder, "egreedy")
+
+
+@dataclass(frozen=True)
+class Plan:
+    budget: str
+    encoders: tuple[str, ...]
+    variants: tuple[str, ...]
+    seeds: tuple[int, ...]
+    train_scenario: str
+    scenarios: tuple[str, ...]
+    episodes: int
+    jobs: int
+    launcher: str
+    threads: int
+    reps: int
+    out: Path
+    planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled), as the paper's did
+    counterfactual: tuple[tuple[str, Any], ...] = tuple(COUNTERFACTUAL_OFF.items())  # every run's train.counterfactual
+
+    @property
+    def methods(self) -> tuple[Method, ...]:
+        return tuple(Method(e, v) for e in self.encoders for v in self.variants)
+
+    def run_dir(self, method: Method, seed: int) -> Path:
+        return self.out / "runs" / f"{method.name.replace('+', '-')}-s{seed}"
+
+    def manifest(self) -> dict[str, Any]:
+        import crowdrl
+
+        out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
+               "train_scenario": self.train_scenario, "episodes": self.episodes}
+        return {**out, "planning": self.planning, "counterfactual": dict(self.counterfactual)}
+
+
+def make_plan(cfg: dict[str, Any]) -> Plan:
+    """Validate the settings (each error names its key)."""
+    from crowdrl.models import ENCODERS
+    from crowdrl.sim.config import SCENARIOS
+    from crowdrl.sim.rng import MAX_SEED
+    from crowdrl.training.config import EXPLORATIONS
+
+    unknown = sorted(set(cfg) - KEYS)
+    if unknown:
+        raise PlanError(f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(KEYS))}")
+
+    def names(key: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+        value = cfg[key]
+        if isinstance(value, str) or not value:
+            raise PlanError(f"{key}: give a non-empty list, e.g. {key}=[{allowed[0]}]")
+        bad = [v for v in value if v not in allowed]
+        if bad:
+            raise PlanError(f"{key}: unknown {', '.join(map(str, bad))}; allowed: {', '.join(allowed)}")
+        if len(set(value)) != len(value):
+            raise PlanError(f"{key}: listed twice: {value}")
+        return tuple(value)
+
+    def integer(key: str, low: int) -> int:
+        value = cfg[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise PlanError(f"{key}: must be an integer >= {low}, got {value!r}")
+        return value
+
+    if cfg["budget"] not in BUDGETS:
+        raise PlanError(f"budget: unknown {cfg['budget']!r}; allowed: {', '.join(BUDGETS)}")
+    if cfg["launcher"] not in LAUNCHERS:
+        raise PlanError(f"launcher: unknown {cfg['launcher']!r}; allowed: {', '.join(LAUNCHERS)}")
+    if cfg["train_scenario"] not in SCENARIOS:
+        raise PlanError(f"train_scenario: unknown {cfg['train_scenario']!r}; allowed: {', '.join(SCENARIOS)}")
+    seeds = cfg["seeds"]
+    if isinstance(seeds, (int, str)) or not seeds:
+        raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
+    if (any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED for s in seeds)
+            or len(set(seeds)) != len(seeds)):
+        raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
+    planning = cfg.get("planning", True)
+    if not isinstance(planning, bool):
+        raise PlanError(f"planning: must be true or false, got {planning!r}")
+    counterfactual = cfg.get("counterfactual") or {}
+    if not isinstance(counterfactual, dict) or set(counterfactual) - set(COUNTERFACTUAL_OFF):
+        raise PlanError(f"counterfactual: give train.counterfactual's keys ({', '.join(COUNTERFACTUAL_OFF)}), e.g. "
+                        f"counterfactual.mode=second_update; got {counterfactual!r}")
+    counterfactual = {**COUNTERFACTUAL_OFF, **counterfactual}
+    return Plan(counterfactual=tuple(counterfactual.items()), planning=planning, budget=cfg["budget"],
+                encoders=names("encoders", tuple(sorted(ENCODERS))),
+                variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
+                train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
+                episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
+                threads=integer("threads", 1), reps=integer("reps", 100), out=Path(cfg["out"]))
+
+
+
+def check_runs(plan: Plan) -> None:
+    """Validate every method's run configuration (what ``train.py`` will be given, memory bounds
+    included) before anything is trained or written; an error names the method and the key."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from hydra.core.global_hydra import GlobalHydra
+
+    from crowdrl.training.config import ConfigError, RunConfig
+    from crowdrl.training.resolvers import register_resolvers
+    from crowdrl.training.validation import validate
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    register_resolvers()
+    for method in plan.methods:
+        overrides = [*run_overrides(plan, method), f"seed={plan.seeds[0]}"]
+        if GlobalHydra.instance().is_initialized():  # inside main(): Hydra already reads conf/
+            cfg = compose(config_name="config", overrides=overrides)
+        else:
+            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+                cfg = compose(config_name="config", overrides=overrides)
+        try:
+            validate(cfg)
+        except ConfigError as exc:
+            raise PlanError(f"the {method.name} runs ({' '.join(overrides)}): {exc}") from None
+
+
+
+def check_manifest(plan: Plan) -> None:
+    """Refuse to mix results of another budget, test-case count or code version in one folder."""
+    path = plan.out / "manifest.json"
+    want = plan.manifest()
+    if path.exists():
+        have = json.loads(path.read_text())
+        have.setdefault("planning", False)  # folders made before the key trained without planning
+        have.setdefault("counterfactual", COUNTERFACTUAL_OFF)  # ... and without counterfactual experience
+        diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
+        if diff:
+            said = ", ".join(f"{k}: folder {a!r} vs now {b!r}" for k, (a, b) in diff.items())
+            raise PlanError(f"out: {plan.out} holds results made with other settings ({said}); "
+                            f"pass a fresh out=<folder> or delete {plan.out} to start again")
+        return
+    from crowdrl.files import atomic_write_json
+
+    atomic_write_json(path, want)
+
+
+
+def run_overrides(plan: Plan, method: Method) -> list[str]:
+    """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
+    return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
+            f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
+            f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
+            f"planning.enabled={str(plan.planning).lower()}",
+            *[f"train.counterfactual.{k}={v}" for k, v in plan.counterfactual
+              if dict(plan.counterfactual)["mode"] != "off"]]
+
+
+def is_trained(run_dir: Path) -> bool:
+    status = run_dir / "status.json"
+    return status.exists() and json.loads(status.read_text()).get("state") == "completed"
+
+
+def eval_path(run_dir: Path, scenario: str) -> Path:
+    return run_dir / f"eval-{scenario}" / "eval.json"
+
+
+def has_eval(path: Path, episodes: int) -> bool:
+    from crowdrl.evaluation.report import read_eval_record
+
+    return path.exists() and read_eval_record(path)["episodes"] == episodes
