@@ -30,10 +30,9 @@ STILL_SPEED = 0.1  # m/s
 
 def load(path: Path):
     """The run config, the Q network (eval mode) and the crowd predictor of a best.pt or last.pt."""
-    from crowdrl.training.checkpoint import CheckpointError, load_checkpoint
+    from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, load_trained_predictor
     from crowdrl.training.config import stored_config, validate
     from crowdrl.training.loss import D3QNLoss
-    from crowdrl.training.pipeline import load_trained_predictor
     from crowdrl.training.variants import make_network
 
     data = load_checkpoint(path)

@@ -38,11 +38,10 @@ from torch import Tensor, nn
 
 from crowdrl.files import atomic_write_bytes
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
-from crowdrl.training.checkpoint import config_fingerprint
+from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network
 from crowdrl.envs.robot_centric import ENTITY_DIM
 from crowdrl.training.config import sees_obstacles, to_dict
 from crowdrl.training.factories import crowd_config
-from crowdrl.training.pipeline import checkpoint_path, load_trained_network
 
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
 ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles

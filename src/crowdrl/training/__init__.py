@@ -1,9 +1,9 @@
 """D3QN training: config schema, n-step replay, trainer, checkpoints, run pipeline."""
 
-from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, load_trained_network, save_checkpoint
 from crowdrl.training.config import ConfigError, RunConfig
 from crowdrl.training.nstep import NStepReturn, nstep_transitions
-from crowdrl.training.pipeline import evaluate_best, evaluate_network, load_trained_network, run_training
+from crowdrl.training.pipeline import evaluate_best, evaluate_network, run_training
 from crowdrl.training.trainer import Trainer
 from crowdrl.training.validation import validate
 

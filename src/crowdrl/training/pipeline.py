@@ -14,14 +14,11 @@ from filelock import FileLock, Timeout
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import CrowdConfig
-from crowdrl.training.checkpoint import CheckpointError, check_finite_weights, config_fingerprint, load_checkpoint
-from crowdrl.training.compat import stored_config
-from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict
-from crowdrl.training.factories import crowd_config, make_actor, make_env, make_predictor_of
+from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
+from crowdrl.training.config import EVAL_BATCH, RunConfig, to_dict
+from crowdrl.training.factories import make_actor, make_env
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
-from crowdrl.training.validation import validate
-from crowdrl.training.variants import make_network
 
 TEST_SEED = 0  # the fixed test cases: episodes 0.. of the test stream of seed 0
 
@@ -136,71 +133,6 @@ def stop_signals(trainer: Trainer):
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
-
-
-def checkpoint_path(path: Path | str) -> Path:
-    """``path`` itself for a file; for a folder, a run folder's ``checkpoints/best.pt`` or a
-    pretrained agent's ``best.pt`` (``pretrained/<name>``). A ``pretrained/<name>`` that does not
-    exist raises :class:`CheckpointError` listing the agents that do."""
-    path = Path(path)
-    if not path.exists() and path.parent.name == "pretrained":
-        have = sorted(f.parent.name for f in path.parent.glob("*/best.pt"))
-        raise CheckpointError(f"no pretrained agent {path.name!r} in {path.parent}; "
-                              f"available: {', '.join(have) or 'none'}")
-    if not path.is_dir():
-        return path
-    return path / "best.pt" if (path / "best.pt").exists() and not (path / "checkpoints").exists() else \
-        path / "checkpoints" / "best.pt"
-
-
-def load_trained_network(path: Path | str, fingerprint: str | None = None, *, config: dict | None = None
-                         ) -> tuple[RunConfig, torch.nn.Module, dict[str, Any]]:
-    """The run config, the Q network (eval mode: noise and dropout off) and the raw payload of a
-    trained checkpoint (a run folder or a ``best.pt``).
-
-    Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file, a
-    config the code cannot rebuild, weights that do not fit the network of the config, NaN or
-    infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
-    run with another configuration (given ``config`` too, the loading run's: naming the keys that differ).
-    """
-    ckpt = checkpoint_path(path)
-    data = load_checkpoint(ckpt, fingerprint, config=config)
-    if "net" not in data or "config" not in data:
-        raise CheckpointError(f"{ckpt} holds no trained network ('net' and 'config'); pass a run folder or its "
-                              f"checkpoints/best.pt")
-    try:
-        # what training needed is no concern here; a key it predates: the value it ran with (STORED_DEFAULTS)
-        run = validate(stored_config(data["config"]), resources=False)
-    except ConfigError as exc:
-        raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
-    if data.get("fingerprint") != config_fingerprint(to_dict(run)):
-        raise CheckpointError(f"{ckpt}: its fingerprint does not match the config stored with it (edited or foreign file)")
-    net = make_network(run)
-    try:
-        net.load_state_dict(data["net"])
-    except RuntimeError as exc:
-        first = str(exc).splitlines()[0]
-        raise CheckpointError(f"{ckpt}: the network shape does not match its config ({first})") from None
-    check_finite_weights(net, ckpt, "Q network")
-    net.eval()  # noise and dropout off: the greedy policy of the mean network
-    return run, net, data
-
-
-def load_trained_predictor(run: RunConfig, data: dict[str, Any], path: Path | str = "checkpoint"
-                           ) -> torch.nn.Module | None:
-    """The planner's crowd predictor of a trained checkpoint's payload ``data`` (``None`` without
-    planning; a ``const_vel`` predictor has no weights to load)."""
-    predictor = make_predictor_of(run, crowd_config(run).time_step)
-    if predictor is None or not any(True for _ in predictor.parameters()):
-        return predictor
-    if "predictor" not in data:
-        raise CheckpointError(f"{path}: planning.predictor=learned but the checkpoint holds no predictor weights")
-    try:
-        predictor.load_state_dict(data["predictor"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"{path}: the predictor's weights do not fit ({str(exc).splitlines()[0]})") from None
-    check_finite_weights(predictor, path, "crowd predictor")
-    return predictor.eval()
 
 
 def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | None = None, seed: int = TEST_SEED,
