@@ -45,6 +45,8 @@ class Method:
 
 @dataclass(frozen=True)
 class Plan:
+    """The checked settings of one reproduction (:func:`make_plan`)."""
+
     budget: str
     encoders: tuple[str, ...]
     variants: tuple[str, ...]
@@ -190,15 +192,18 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
 
 
 def is_trained(run_dir: Path) -> bool:
+    """Whether the run in ``run_dir`` finished training (its ``status.json`` says completed)."""
     status = run_dir / "status.json"
     return status.exists() and json.loads(status.read_text()).get("state") == "completed"
 
 
 def eval_path(run_dir: Path, scenario: str) -> Path:
+    """Where a run's test record on ``scenario`` lives."""
     return run_dir / f"eval-{scenario}" / "eval.json"
 
 
 def has_eval(path: Path, episodes: int) -> bool:
+    """Whether the record at ``path`` exists and covers ``episodes`` test cases."""
     from crowdrl.evaluation.report import read_eval_record
 
     return path.exists() and read_eval_record(path)["episodes"] == episodes
