@@ -10,6 +10,8 @@ validation >= 0.90.
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --jobs 2
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --table-only
     python experiments/counterfactual_ablation.py --out /tmp/cf --preset smoke --seeds 0 --settings off top5
+    python experiments/counterfactual_ablation.py --out results/counterfactual-levers --jobs 2 \
+        --settings top5 top5-polyak top5-huber top5-clip top5-lrdecay     # the stability levers beside top5
 
 ``--test circle square`` then evaluates every finished run's best checkpoint on the 1000 test cases of
 each scenario (test seed 0) into ``<run>/eval-<scenario>/eval.json``, for ``compare_runs.py``; settings
@@ -38,6 +40,17 @@ SETTINGS = {  # name -> train.counterfactual overrides
     "merged5": {"mode": "merged", "actions": "topk", "k": 5, "weight": 0.5},
     "random5": {"mode": "second_update", "actions": "random", "k": 5},
     "all81": {"mode": "second_update", "actions": "all"},
+    # top5 with one stability lever each (train.* keys, off by default)
+    "top5-polyak": {"mode": "second_update", "actions": "topk", "k": 5},
+    "top5-huber": {"mode": "second_update", "actions": "topk", "k": 5},
+    "top5-clip": {"mode": "second_update", "actions": "topk", "k": 5},
+    "top5-lrdecay": {"mode": "second_update", "actions": "topk", "k": 5},
+}
+LEVERS = {  # setting -> the other train.* overrides it adds
+    "top5-polyak": ["train.target_tau=0.005"],  # about the hard copy's horizon: 1/0.005 = 200 updates of memory
+    "top5-huber": ["train.huber_delta=1.0"],
+    "top5-clip": ["train.grad_clip_norm=10.0"],
+    "top5-lrdecay": ["train.lr_end=0.0001"],  # 1e-3 -> 1e-4 over the run
 }
 BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
         "train.test_episodes=100"]  # the test is not what this compares: validation only
@@ -45,7 +58,7 @@ THRESHOLD, LAST, COLLAPSE = 0.90, 5, 0.2
 
 
 def overrides(setting: str) -> list[str]:
-    return [f"train.counterfactual.{k}={v}" for k, v in SETTINGS[setting].items()]
+    return [f"train.counterfactual.{k}={v}" for k, v in SETTINGS[setting].items()] + LEVERS.get(setting, [])
 
 
 def run_one(folder: Path, setting: str, seed: int, preset: str, extra: list[str]) -> tuple[str, int]:
@@ -135,7 +148,9 @@ def table(out: Path, settings: list[str], seeds: list[int]) -> str:
               "largest drop, 2nd half", f"k frames to val. >= {THRESHOLD}", f"train minutes to val. >= {THRESHOLD}"]
     text = markdown_table(header, rows) + "\n"
     atomic_write_bytes(out / "table.md", text.encode())
-    atomic_write_json(out / "table.json", {"settings": {s: SETTINGS[s] for s in settings}, "seeds": seeds,
+    levers = {s: LEVERS[s] for s in settings if s in LEVERS}
+    atomic_write_json(out / "table.json", {"settings": {s: SETTINGS[s] for s in settings},
+                                           **({"levers": levers} if levers else {}), "seeds": seeds,
                                            "base": BASE, "runs": records})
     return text
 

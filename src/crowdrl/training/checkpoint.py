@@ -38,6 +38,9 @@ _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": Crowd
                     **{k: getattr(CrowdConfig, k) for k in SOCIAL_FORCE_KEYS}}}
 
 
+_TRAIN_NEUTRAL = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None}
+
+
 def config_fingerprint(config: dict) -> str:
     """Hash of the parts of a config that define the learning problem (not budgets or logging)."""
     return hashlib.sha256(json.dumps(fingerprinted(config), sort_keys=True).encode()).hexdigest()[:16]
@@ -73,6 +76,9 @@ def fingerprinted(config: dict) -> dict[str, Any]:
     train = dict(config.get("train", {}))
     if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":
         train.pop("counterfactual")  # off: the fingerprint of a run recorded before the key
+    for key, off in _TRAIN_NEUTRAL.items():  # the stability levers at their defaults: as before the keys
+        if key in train and train[key] == off:
+            train.pop(key)
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
               "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
         train.pop(k, None)

@@ -164,6 +164,14 @@ class TrainConfig:
     # torch.compile graph (bench_train.py --loss)
     compile_loss: bool = True
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
+    # stability levers, each off at its default (the paper's learner): Polyak target updates after every
+    # update (1: a hard copy every target_update_frames), a Huber loss of this delta (null: squared error),
+    # the Q gradients' norm clipped (null: not), the learning rate decayed linearly to lr_end over
+    # total_frames (null: constant)
+    target_tau: float = 1.0
+    huber_delta: float | None = None
+    grad_clip_norm: float | None = None
+    lr_end: float | None = None
 
 
 @dataclass

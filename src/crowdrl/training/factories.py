@@ -143,7 +143,7 @@ def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase,
 def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_KEYS) -> D3QNLoss:
     """Double dueling DQN loss on n-step transitions of ``keys``, with its target network."""
     t = run.train
-    return D3QNLoss(net, keys, gamma=t.gamma, double=True, compile=t.compile_loss)
+    return D3QNLoss(net, keys, gamma=t.gamma, double=True, compile=t.compile_loss, huber_delta=t.huber_delta)
 
 
 def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None) -> torch.optim.Optimizer:

@@ -85,9 +85,11 @@ class D3QNLoss(LossModule):
     """
 
     def __init__(self, net: nn.Module, obs_keys: Sequence[str], gamma: float, double: bool = True,
-                 compile: bool = False) -> None:
+                 compile: bool = False, huber_delta: float | None = None) -> None:
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        if huber_delta is not None and not huber_delta > 0:
+            raise ValueError(f"huber_delta must be > 0 or None, got {huber_delta}")
         if not obs_keys:
             raise ValueError("obs_keys must name at least one observation key")
         super().__init__()
@@ -97,6 +99,7 @@ class D3QNLoss(LossModule):
         self.gamma = float(gamma)
         self.double = bool(double)
         self.compile = bool(compile)
+        self.huber_delta = None if huber_delta is None else float(huber_delta)
         self._num_actions: int | None = None
         self._gradients_fn = LazyCompiled(self.gradients, dynamic=False, what="the D3QN update", options=CPP_WRAPPER,
                                           enabled=self.compile)
@@ -115,6 +118,14 @@ class D3QNLoss(LossModule):
         """Copy the online parameters and buffers into the target network (a hard update)."""
         for dst, src in zip(self.target_net.parameters(), self.net.parameters()):
             dst.copy_(src)
+        for dst, src in zip(self.target_net.buffers(), self.net.buffers()):
+            dst.copy_(src)
+
+    @torch.no_grad()
+    def update_target_polyak(self, tau: float) -> None:
+        """Move the target parameters towards the online ones: ``θ' ← θ' + τ (θ - θ')``; buffers are copied."""
+        for dst, src in zip(self.target_net.parameters(), self.net.parameters()):
+            dst.lerp_(src, tau)
         for dst, src in zip(self.target_net.buffers(), self.net.buffers()):
             dst.copy_(src)
 
@@ -199,11 +210,15 @@ class D3QNLoss(LossModule):
 
     def objective(self, params: dict[str, Tensor] | None, b: D3QNBatch, y: Tensor
                   ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
-        """``mean (Q_params(s, a) - y)²`` (``sum weight·(Q - y)²`` for a weighted batch) and, detached,
-        ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
+        """``mean (Q_params(s, a) - y)²`` (``sum weight·(Q - y)²`` for a weighted batch; with ``huber_delta``
+        the Huber loss of the difference in place of its square) and, detached, ``(mean Q(s, a), mean |Q(s, a) - y|)``."""
         q = self._q(self.net, params, b.obs).gather(-1, b.action)  # [n, g]: each state encoded once
         diff = q - y
-        loss = diff.pow(2).mean() if b.weight is None else (b.weight * diff.pow(2)).sum()
+        if self.huber_delta is None:
+            per = diff.pow(2)
+        else:
+            per = torch.nn.functional.huber_loss(q, y, reduction="none", delta=self.huber_delta)
+        loss = per.mean() if b.weight is None else (b.weight * per).sum()
         return loss, (q.detach().mean(), diff.detach().abs().mean())
 
     def gradients(self, params: dict[str, Tensor], target_params: dict[str, Tensor], b: D3QNBatch

@@ -26,6 +26,7 @@ from tensordict import TensorDictBase
 
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration import make_strategy
+from crowdrl.exploration.schedule import linear_schedule
 from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
@@ -230,6 +231,7 @@ class Trainer:
                                      resume_data.get("wandb_id") if resume_data else None)
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
         self.strategy.schedule(c.frames)  # a resumed run acts with the schedules of its frame count, not their start
+        self.set_learning_rate()
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
             summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
             self.write_status("trained", **summary)
@@ -255,6 +257,7 @@ class Trainer:
                 loss_value = self._update(frames)
                 timers["update"] += time.perf_counter() - tick
                 self.strategy.before_collection(c.frames)
+                self.set_learning_rate()
                 if c.frames - c.last_val >= t.val_every_frames or c.frames >= t.total_frames:
                     tick = time.perf_counter()
                     self._validate()
@@ -316,6 +319,16 @@ class Trainer:
     def _learner_scalar_names(self) -> list[str]:
         return [name for learner in self.learners for name in learner.scalar_names()]
 
+    def set_learning_rate(self) -> None:
+        """The Q optimiser's learning rate at the frame count reached: ``train.lr``, decayed linearly to
+        ``train.lr_end`` over ``train.total_frames`` when that is set."""
+        t = self.run.train
+        if t.lr_end is None:
+            return
+        lr = linear_schedule(t.lr, t.lr_end, t.total_frames, self.counters.frames)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def update_once(self, sample: TensorDictBase) -> float:
         """One update on a sampled batch: each auxiliary learner's step on it, then a gradient step on
         each batch of the update part (the sample, then any simulated one), the target copy when it
@@ -327,13 +340,17 @@ class Trainer:
         loss = None
         for name, batch in self.update_part.batches(sample):
             value = self.loss.loss_and_grad(batch)["loss"]  # gradients into the Q network's .grad
+            if self.run.train.grad_clip_norm is not None:
+                torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.run.train.grad_clip_norm)
             self.optimizer.step()
             if loss is None:
                 loss = value
             else:
                 self._part_losses.setdefault(name, []).append(float(value))
         self.counters.updates += 1
-        if self.counters.updates % self.updates_per_copy == 0:
+        if self.run.train.target_tau < 1:
+            self.loss.update_target_polyak(self.run.train.target_tau)
+        elif self.counters.updates % self.updates_per_copy == 0:
             self.loss.update_target()
         value = float(loss.detach())
         if not math.isfinite(value):

@@ -95,6 +95,11 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
           f"values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, got {t.gamma}")
     check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
     check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
+    check(0 < t.target_tau <= 1, "train.target_tau", f"must lie in (0, 1], got {t.target_tau}")
+    for key in ("huber_delta", "grad_clip_norm"):
+        value = getattr(t, key)
+        check(value is None or value > 0, f"train.{key}", f"must be > 0 or null, got {value}")
+    check(t.lr_end is None or 0 <= t.lr_end <= t.lr, "train.lr_end", f"must lie in [0, train.lr] or be null, got {t.lr_end}")
     check_counterfactual(run)
     p = run.planning
     check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
