@@ -59,6 +59,8 @@ def test_polyak_update_moves_the_target_by_tau():
         net.weight.add_(1.0)
     loss.update_target_polyak(0.25)
     torch.testing.assert_close(loss.target_net.weight, before + 0.25 * (net.weight - before))
+    with pytest.raises(ValueError, match="tau"):
+        loss.update_target_polyak(0.0)
 
 
 def _run(tmp_path, **train):

@@ -124,6 +124,8 @@ class D3QNLoss(LossModule):
     @torch.no_grad()
     def update_target_polyak(self, tau: float) -> None:
         """Move the target parameters towards the online ones: ``θ' ← θ' + τ (θ - θ')``; buffers are copied."""
+        if not 0.0 < tau <= 1.0:
+            raise ValueError(f"tau must lie in (0, 1], got {tau}")
         for dst, src in zip(self.target_net.parameters(), self.net.parameters()):
             dst.lerp_(src, tau)
         for dst, src in zip(self.target_net.buffers(), self.net.buffers()):
