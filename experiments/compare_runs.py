@@ -9,7 +9,9 @@ the first group's success rate. Writes ``table.md`` and ``table.json`` under ``-
 ``--split val`` compares on the validation episodes the runs logged while training (their
 ``scalars.jsonl``), never on test cases: what settings are chosen by. Per run: the success,
 collision and timeout rates over its last ``--last`` validations (the end of training, 100 episodes
-each: a run that falls back late scores low), and its best validation success.
+each: a run that falls back late scores low), its best validation success, how far the last
+validations sit below that best (``gap``), and the largest drop of a validation below the run's
+running best among those after ``--after`` frames (default: the second half of the run).
 
     python experiments/compare_runs.py --out results/planning \\
         --group "ε-greedy=results/demo/runs/egreedy-s0,results/demo/runs/egreedy-s1,results/demo/runs/egreedy-s2" \\
@@ -34,12 +36,15 @@ from crowdrl.tables import interval_cell, markdown_table
 METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), ("navigation_time", "nav time (s)", 2),
            ("average_return", "avg return", 4))
 VAL_METRICS = (("success_rate", "success (last val.)", 3), ("collision_rate", "collision (last val.)", 3),
-               ("timeout_rate", "timeout (last val.)", 3), ("best_success_rate", "best val. success", 3))
+               ("timeout_rate", "timeout (last val.)", 3), ("best_success_rate", "best val. success", 3),
+               ("gap_to_best", "best - last val.", 3), ("late_drop", "largest drop", 2))
 VAL_SCENARIO = "validation"
 
 
-def val_record(run: Path, last: int) -> dict:
-    """A run's validation results: rates over its last ``last`` validations, its best success."""
+def val_record(run: Path, last: int, after: int | None = None) -> dict:
+    """A run's validation results: rates over its last ``last`` validations, its best success, the
+    best minus the last validations' success (``gap_to_best``), and the largest drop below the running
+    best among the validations after ``after`` frames (``late_drop``; None: the second half of the run)."""
     rows = [json.loads(line) for line in (run / "scalars.jsonl").read_text().splitlines() if line.strip()]
     vals = [r for r in rows if r.get("kind") == "val"]
     if len(vals) < last:
@@ -47,7 +52,12 @@ def val_record(run: Path, last: int) -> dict:
     tail = vals[-last:]
     out = {f"{k}": float(np.mean([r[f"val/{k}"] for r in tail])) for k in ("success_rate", "collision_rate",
                                                                            "timeout_rate")}
-    out["best_success_rate"] = max(r["val/success_rate"] for r in vals)
+    success = np.array([r["val/success_rate"] for r in vals])
+    frames = np.array([r["frames"] for r in vals])
+    out["best_success_rate"] = float(success.max())
+    out["gap_to_best"] = out["best_success_rate"] - out["success_rate"]
+    late = frames > (frames[-1] / 2 if after is None else after)
+    out["late_drop"] = float((np.maximum.accumulate(success) - success)[late].max(initial=0.0))
     out["episodes"] = int(sum(r["val/episodes"] for r in tail))
     out["frames"] = [tail[0]["frames"], tail[-1]["frames"]]
     return out
@@ -70,12 +80,13 @@ def parse_group(text: str, scenarios: list[str]) -> tuple[str, list[Path]]:
     return label, runs
 
 
-def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int, last: int = 5) -> list[dict]:
+def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int, last: int = 5,
+            after: int | None = None) -> list[dict]:
     rows = []
     metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
     for scenario in scenarios:
         if scenario == VAL_SCENARIO:
-            records = {label: [val_record(r, last) for r in runs] for label, runs in groups}
+            records = {label: [val_record(r, last, after) for r in runs] for label, runs in groups}
         else:
             records = {label: [read_eval_record(r / f"eval-{scenario}" / "eval.json") for r in runs]
                        for label, runs in groups}
@@ -95,14 +106,17 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
     return rows
 
 
-def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last: int = 5) -> str:
+def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last: int = 5,
+             after: int | None = None) -> str:
     metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
 
     lines = [f"Cells: mean over seeds [95 % stratified-bootstrap CI, rliable, {reps} resamples]; "
              f"P(improve): probability that the group's success rate beats {first}'s on a random pair of seeds.", ""]
     if scenarios == [VAL_SCENARIO]:
         lines[-1:] = [f"Validation episodes only (the runs' scalars.jsonl): rates over each run's last {last} "
-                      f"validations ({last} x 100 episodes at the end of training), and its best validation.", ""]
+                      f"validations ({last} x 100 episodes at the end of training), its best validation, the best minus "
+                      f"those last validations, and the largest drop of a validation below the run's running best "
+                      f"after {'half the run' if after is None else f'{after} frames'}.", ""]
     for scenario in scenarios:
         cells = [[r["group"], r["seeds"], *(interval_cell(r, k, d, interval=r["seeds"] > 1) for k, _, d in metrics),
                   interval_cell(r, "p_improve", 2)]
@@ -119,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", choices=["test", "val"], default="test",
                    help="test: the eval-<scenario>/eval.json records; val: the validations logged in training")
     p.add_argument("--last", type=int, default=5, help="--split val: validations at the end of training to average")
+    p.add_argument("--after", type=int, default=None,
+                   help="--split val: the largest drop counts validations after these frames (default: 2nd half)")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print the rows as JSON instead of Markdown")
@@ -129,16 +145,18 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--reps must be >= 100")
     if args.last < 1:
         raise SystemExit("--last must be >= 1")
+    if args.after is not None and args.after < 0:
+        raise SystemExit("--after must be >= 0")
     scenarios = [VAL_SCENARIO] if args.split == "val" else args.scenarios
     groups = [parse_group(g, scenarios) for g in args.group]
     try:
-        rows = compare(groups, scenarios, args.reps, args.last)
+        rows = compare(groups, scenarios, args.reps, args.last, args.after)
     except RecordError as exc:  # a record read back that crowdrl would not write: file and field named
         p.exit(2, f"{p.prog}: {exc}\n")
     args.out.mkdir(parents=True, exist_ok=True)
     result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows}
     atomic_write_json(args.out / "table.json", result)
-    text = markdown(rows, scenarios, groups[0][0], args.reps, args.last)
+    text = markdown(rows, scenarios, groups[0][0], args.reps, args.last, args.after)
     atomic_write_bytes(args.out / "table.md", text.encode())
     print(dumps_json(result) if args.json else text)
     return 0

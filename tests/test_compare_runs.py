@@ -35,6 +35,12 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     assert rows["B"]["success_rate"] == pytest.approx(0.25) and rows["B"]["timeout_rate"] == pytest.approx(0.65)
     assert rows["B"]["best_success_rate"] == 0.95  # the best validation hides B's late fall
     assert rows["B"]["p_improve"] == 0.0 and rows["A"]["episodes"] == 200
+    # stability: the last validations below the best, and the largest fall below the running best late on
+    assert rows["A"]["gap_to_best"] == pytest.approx(0.1) and rows["B"]["gap_to_best"] == pytest.approx(0.7)
+    assert rows["A"]["late_drop"] == pytest.approx(0.1) and rows["B"]["late_drop"] == pytest.approx(0.75)
+    none_after = subprocess.run([*cmd, "--after", "40"], capture_output=True, text=True, timeout=120)
+    assert none_after.returncode == 0, none_after.stderr[-2000:]
+    assert all(r["late_drop"] == 0.0 for r in json.loads(none_after.stdout)["rows"])  # no validation after 40 frames
     assert "validation" in (tmp_path / "out" / "table.md").read_text()
     short = subprocess.run([*cmd[:-4], "--last", "9", "--group", "A=" + str(a[0]), "--group", "B=" + str(b[0])],
                            capture_output=True, text=True, timeout=120)
