@@ -11,7 +11,7 @@ validation >= 0.90.
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --table-only
     python experiments/counterfactual_ablation.py --out /tmp/cf --preset smoke --seeds 0 --settings off top5
     python experiments/counterfactual_ablation.py --out results/counterfactual-levers --jobs 2 \
-        --settings top5 top5-polyak top5-huber top5-clip top5-lrdecay     # the stability levers beside top5
+        --settings off top5 top5-polyak top5-huber top5-clip top5-lrdecay top5-layernorm  # levers beside top5
 
 ``--test circle square`` then evaluates every finished run's best checkpoint on the 1000 test cases of
 each scenario (test seed 0) into ``<run>/eval-<scenario>/eval.json``, for ``compare_runs.py``; settings
@@ -45,12 +45,14 @@ SETTINGS = {  # name -> train.counterfactual overrides
     "top5-huber": {"mode": "second_update", "actions": "topk", "k": 5},
     "top5-clip": {"mode": "second_update", "actions": "topk", "k": 5},
     "top5-lrdecay": {"mode": "second_update", "actions": "topk", "k": 5},
+    "top5-layernorm": {"mode": "second_update", "actions": "topk", "k": 5},
 }
 LEVERS = {  # setting -> the other train.* overrides it adds
     "top5-polyak": ["train.target_tau=0.005"],  # about the hard copy's horizon: 1/0.005 = 200 updates of memory
     "top5-huber": ["train.huber_delta=1.0"],
     "top5-clip": ["train.grad_clip_norm=10.0"],
     "top5-lrdecay": ["train.lr_end=0.0001"],  # 1e-3 -> 1e-4 over the run
+    "top5-layernorm": ["train.q_layer_norm=true"],
 }
 BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
         "train.test_episodes=100"]  # the test is not what this compares: validation only

@@ -1,4 +1,5 @@
-"""The learner's stability levers (``train.target_tau``, ``huber_delta``, ``grad_clip_norm``, ``lr_end``):
+"""The learner's stability levers (``train.target_tau``, ``huber_delta``, ``grad_clip_norm``, ``lr_end``,
+``q_layer_norm``):
 each off by default with the old fingerprint, each doing what it says, bad values refused naming the key."""
 
 import math
@@ -11,7 +12,7 @@ from crowdrl.training.checkpoint import config_fingerprint
 from crowdrl.training.config import to_dict
 from crowdrl.training.loss import D3QNLoss
 
-LEVERS = {"target_tau": 0.01, "huber_delta": 1.0, "grad_clip_norm": 5.0, "lr_end": 1e-4}
+LEVERS = {"target_tau": 0.01, "huber_delta": 1.0, "grad_clip_norm": 5.0, "lr_end": 1e-4, "q_layer_norm": True}
 
 
 def test_levers_at_their_defaults_keep_the_fingerprint_and_each_one_set_changes_it():
@@ -107,3 +108,30 @@ def test_clipped_gradients_and_the_decayed_learning_rate(tmp_path):
     assert norms and max(norms) <= 1e-3 * (1 + 1e-4)
     lr = trainer.optimizer.param_groups[0]["lr"]
     assert lr == pytest.approx(1e-4 + (1e-3 - 1e-4) * max(0.0, 1 - 128 / 128))  # at total_frames: lr_end
+
+
+def test_layer_norm_head_normalises_each_hidden_layer_and_off_keeps_the_papers_parameters():
+    from crowdrl.training.variants import make_network
+
+    plain = make_network(validate({}, resources=False))
+    normed = make_network(validate({"train": {"q_layer_norm": True}}, resources=False))
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain.modules())
+    assert sum(isinstance(m, torch.nn.LayerNorm) for m in normed.head.modules()) == 4  # trunk 2, value 1, advantage 1
+    assert list(plain.head.state_dict()) == ["trunk.0.weight", "trunk.0.bias", "trunk.2.weight", "trunk.2.bias",
+                                             "value.0.weight", "value.0.bias", "value.2.weight", "value.2.bias",
+                                             "advantage.0.weight", "advantage.0.bias", "advantage.2.weight",
+                                             "advantage.2.bias"]  # what stored checkpoints hold
+    # each hidden activation of the normed trunk has zero mean and unit variance per sample before its ReLU
+    z = torch.randn(5, normed.head.embedding_dim)
+    pre = normed.head.trunk[:2](z)
+    torch.testing.assert_close(pre.mean(-1), torch.zeros(5), atol=1e-5, rtol=0)
+    torch.testing.assert_close(pre.var(-1, unbiased=False), torch.ones(5), atol=1e-3, rtol=0)
+
+
+def test_layer_norm_head_composes_with_noisy_and_dropout_heads():
+    from crowdrl.training.variants import make_network
+
+    for exploration in ("noisy", "dropout"):
+        net = make_network(validate({"train": {"q_layer_norm": True}, "exploration": {"name": exploration}},
+                                    resources=False))
+        assert sum(isinstance(m, torch.nn.LayerNorm) for m in net.head.modules()) == 4, exploration

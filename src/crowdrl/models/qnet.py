@@ -32,10 +32,13 @@ class CrowdQNetwork(nn.Module):
         return self.head(self.encoder(robot_rc, humans_rc, humans_mask))
 
 
-def make_q_network(encoder_name: str = "sgd3qn", num_actions: int = 81, hidden: int = 128, **encoder_kwargs) -> CrowdQNetwork:
-    """A :class:`CrowdQNetwork` with the registered encoder ``encoder_name`` and a :class:`DuelingHead`."""
+def make_q_network(encoder_name: str = "sgd3qn", num_actions: int = 81, hidden: int = 128,
+                   head_layer_norm: bool = False, **encoder_kwargs) -> CrowdQNetwork:
+    """A :class:`CrowdQNetwork` with the registered encoder ``encoder_name`` and a :class:`DuelingHead`
+    (with LayerNorm in its hidden layers when ``head_layer_norm``)."""
     encoder = make_encoder(encoder_name, **encoder_kwargs)
-    return CrowdQNetwork(encoder, DuelingHead(encoder.embedding_dim, num_actions=num_actions, hidden=hidden))
+    head = DuelingHead(encoder.embedding_dim, num_actions=num_actions, hidden=hidden, layer_norm=head_layer_norm)
+    return CrowdQNetwork(encoder, head)
 
 
 def make_q_actor(

@@ -38,7 +38,8 @@ _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": Crowd
                     **{k: getattr(CrowdConfig, k) for k in SOCIAL_FORCE_KEYS}}}
 
 
-_TRAIN_NEUTRAL = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None}
+_TRAIN_NEUTRAL = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None,
+                  "q_layer_norm": False}
 
 
 def config_fingerprint(config: dict) -> str:

@@ -167,11 +167,12 @@ class TrainConfig:
     # stability levers, each off at its default (the paper's learner): Polyak target updates after every
     # update (1: a hard copy every target_update_frames), a Huber loss of this delta (null: squared error),
     # the Q gradients' norm clipped (null: not), the learning rate decayed linearly to lr_end over
-    # total_frames (null: constant)
+    # total_frames (null: constant), LayerNorm in the Q head's hidden layers (crowdrl.models.DuelingHead)
     target_tau: float = 1.0
     huber_delta: float | None = None
     grad_clip_norm: float | None = None
     lr_end: float | None = None
+    q_layer_norm: bool = False
 
 
 @dataclass

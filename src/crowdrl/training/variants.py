@@ -39,7 +39,8 @@ def encoder_kwargs(run: RunConfig) -> dict:
 def make_network(run: RunConfig, num_actions: int = 81, strategy: ExplorationStrategy | None = None) -> CrowdQNetwork:
     """The Q network of the run's encoder (fresh parameters), modified by its exploration
     ``strategy`` (default: ``make_strategy(run.exploration)``)."""
-    net = make_q_network(run.encoder.name, num_actions=num_actions, **encoder_kwargs(run))
+    net = make_q_network(run.encoder.name, num_actions=num_actions, head_layer_norm=run.train.q_layer_norm,
+                         **encoder_kwargs(run))
     if strategy is None:
         strategy = make_strategy(run.exploration)
     return strategy.modify_network(net)
