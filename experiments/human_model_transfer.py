@@ -3,7 +3,8 @@ x robot visibility) cell, zero-shot and after training on a cell.
 
 Cells (``eval.human_model``, ``eval.robot_visible``): ``orca`` blind (the paper's protocol), ``orca`` seeing
 the robot, ``social_force`` blind and seeing the robot, ``linear`` (which ignores everyone: seeing the robot
-changes nothing, so it has one cell). Agents, one group each, over seeds:
+changes nothing, so it has one cell), ``mixed`` (a mixed crowd, blind: ``social_force_share`` and ``linear_share``
+0.3 each, ORCA the rest; its ``eval.*_share`` keys are ``evaluate.py``'s). Agents, one group each, over seeds:
 
 * ``pretrained``: ``pretrained/sgd3qn-planning-egreedy-episodes-s{0,1,2}`` (trained on blind ORCA at the
   episodes budget), zero-shot on every other cell;
@@ -47,7 +48,9 @@ CELLS = {  # name -> (eval.human_model, eval.robot_visible)
     "social_force": ("social_force", False),
     "social_force-visible": ("social_force", True),
     "linear": ("linear", False),
+    "mixed": ("mixed", False),
 }
+SHARES = {"mixed": (0.3, 0.3)}  # a mixed cell's (social_force_share, linear_share); ORCA the rest
 TRAINED = {  # group -> the training cell
     "trained-orca": "orca",
     "trained-orca-visible": "orca-visible",
@@ -60,7 +63,9 @@ TRAIN_BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", 
 
 def cell_overrides(cell: str, prefix: str) -> list[str]:
     model, visible = CELLS[cell]
-    return [f"{prefix}.human_model={model}", f"{prefix}.robot_visible={str(visible).lower()}"]
+    shares = [f"{prefix}.{key}={share}" for key, share in zip(("social_force_share", "linear_share"), SHARES[cell])
+              ] if cell in SHARES else []
+    return [f"{prefix}.human_model={model}", *shares, f"{prefix}.robot_visible={str(visible).lower()}"]
 
 
 def log_to(path: Path):
@@ -140,7 +145,9 @@ def write_table(out: Path, rows: list[dict], meta: dict) -> str:
              interval_cell(r, "navigation_time", 2, interval=False)] for r in rows]
     text = (f"# Human models: {meta['episodes']} test cases of {meta['scenario']} (test seed 0) per cell\n\n"
             "Mean over seeds [95 % stratified-bootstrap CI, rliable]; the ORCA robot is deterministic (one "
-            "evaluation). Cells: the humans' model, `-visible` where they see the robot.\n\n"
+            "evaluation). Cells: the humans' model, `-visible` where they see the robot"
+            + "".join(f"; `{c}`: {sf:g} social force, {lin:g} linear, ORCA the rest" for c, (sf, lin) in SHARES.items()
+                      if c in meta["cells"]) + ".\n\n"
             + markdown_table(header, body) + "\n")
     atomic_write_bytes(out / "table.md", text.encode())
     atomic_write_json(out / "table.json", {"meta": meta, "rows": rows})
@@ -183,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
             failed += [f"test {label} on {cell}" for (label, _, cell), code in zip(tests, codes) if code]
         print(f"done in {(time.time() - start) / 60:.0f} min" + (f"; failed: {', '.join(failed)}" if failed else ""))
     meta = {"scenario": args.scenario, "episodes": args.episodes, "test_seed": 0, "seeds": args.seeds,
-            "preset": args.preset, "cells": {c: list(CELLS[c]) for c in args.cells}, "train_base": TRAIN_BASE,
+            "preset": args.preset, "cells": {c: list(CELLS[c]) for c in args.cells},
+            "shares": {c: list(SHARES[c]) for c in args.cells if c in SHARES}, "train_base": TRAIN_BASE,
             "pretrained": PRETRAINED}
     print(write_table(args.out, summarise(args.out, table, args.cells), meta))
     return 1 if failed else 0

@@ -25,6 +25,9 @@ CASES = [  # scenario, crowd, steps: fixed and variable crowds, open space and w
     ("square", {"num_humans": 4, "min_humans": 1}, 60),
     ("corridor", {"num_humans": 4}, 60),
     ("circle", {"num_humans": 4, "human_model": "social_force"}, 60),  # any humans that ignore the robot
+    # a mixed crowd: the restored env keeps each human's model
+    ("square", {"num_humans": 5, "min_humans": 2, "human_model": "mixed", "social_force_share": 0.4,
+                "linear_share": 0.3}, 60),
 ]
 
 

@@ -37,7 +37,8 @@ class CrowdNavGymEnv(gym.Env):
     Info (numbers only): ``event`` (0 running, 1 success, 2 collision, 3 timeout),
     ``min_separation``, ``discomfort_count``, ``episode_id``.
     The humans' model and whether they see the robot: ``gym.make(id, human_model="social_force",
-    robot_visible=True)`` (``CrowdConfig``'s keys; ORCA humans blind to the robot by default).
+    robot_visible=True)``, or a mixed crowd: ``gym.make(id, human_model="mixed", social_force_share=0.3,
+    linear_share=0.2)`` (``CrowdConfig``'s keys; ORCA humans blind to the robot by default).
 
     ``reset(seed=s)`` selects scenario stream ``s`` of ``split`` and restarts its episode counter;
     the first reset without a seed draws the stream from ``self.np_random`` (OS entropy), so the
@@ -59,6 +60,8 @@ class CrowdNavGymEnv(gym.Env):
         lidar_range: float = CrowdConfig.lidar_range,
         human_model: str = CrowdConfig.human_model,
         robot_visible: bool = CrowdConfig.robot_visible,
+        social_force_share: float = CrowdConfig.social_force_share,
+        linear_share: float = CrowdConfig.linear_share,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
@@ -66,7 +69,8 @@ class CrowdNavGymEnv(gym.Env):
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.config = CrowdConfig(scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics,
                                   lidar_rays=lidar_rays, lidar_range=lidar_range, human_model=human_model,
-                                  robot_visible=robot_visible)
+                                  robot_visible=robot_visible, social_force_share=social_force_share,
+                                  linear_share=linear_share)
         self.split = split
         self.render_mode = render_mode
         N, v = self.config.num_humans, self.config.robot_v_pref

@@ -8,7 +8,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from crowdrl.sim import rng
-from crowdrl.sim.config import CrowdConfig, is_integer
+from crowdrl.sim.config import HUMAN_MODELS, MIXED, CrowdConfig, is_integer
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM, observe, step
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, decode_action
 from crowdrl.sim.lidar import observe_lidar
@@ -24,7 +24,9 @@ SPAWN_BLOCK_MAX = 8192
 
 
 class CrowdNavEnv(EnvBase):
-    """Robot navigation among ORCA humans, ``num_envs`` episodes stepped at once.
+    """Robot navigation among ORCA humans, ``num_envs`` episodes stepped at once (other humans:
+    ``config.human_model``, :mod:`crowdrl.sim.humans`; in a mixed crowd each human's model is in
+    ``env.state.human_model``, which the robot does not observe).
 
     Observations (world frame): ``"robot"`` ``[B, 9]`` = (px, py, vx, vy, radius, gx, gy,
     v_pref, heading), ``"humans"`` ``[B, N, 5]`` = (px, py, vx, vy, radius) and ``"humans_mask"``
@@ -166,7 +168,10 @@ class CrowdNavEnv(EnvBase):
             raise ValueError("episode_ids must be >= 0")
         self._queued = ids.clone()
 
-    SNAPSHOT_FORMAT = 2  # 2: every CrowdState field (1, older: no human_mask or obstacles); only the current one restores
+    # 2: every CrowdState field (1, older: no human_mask or obstacles); only the current one restores. A format-2
+    # snapshot written before CrowdState.human_model (each human's model) restores with every human on the
+    # config's model: the only crowd there was (a mixed crowd's snapshot must hold it).
+    SNAPSHOT_FORMAT = 2
 
     def snapshot(self) -> dict:
         """The in-flight episodes (state, ids, per-step info, returns so far) and the stream position,
@@ -197,6 +202,11 @@ class CrowdNavEnv(EnvBase):
             if snapshot.get(key) != value:
                 raise ValueError(f"the snapshot's {key} is {snapshot.get(key)!r}, this env's {value!r}")
         tensors = dict(snapshot.get("tensors", {}))
+        if ("state.human_model" not in tensors and self.config.human_model != MIXED
+                and isinstance(tensors.get("state.human_mask"), torch.Tensor)):  # written before the field
+            mask = tensors["state.human_mask"]
+            tensors["state.human_model"] = torch.full(mask.shape, HUMAN_MODELS.index(self.config.human_model),
+                                                      dtype=torch.int8)
         missing = {f"state.{n}" for n in CrowdState.__dataclass_fields__} - set(tensors)
         if missing:
             raise ValueError(f"the snapshot lacks {sorted(missing)}")

@@ -6,6 +6,8 @@ import math
 import numbers
 from dataclasses import dataclass
 
+import torch
+
 from crowdrl.sim.kinematics import KINEMATICS
 
 SCENARIOS = ("circle", "square", "corridor", "doorway", "room")
@@ -16,10 +18,15 @@ OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_wi
                  "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
 LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.orca_compiled (torch.compile, minutes to build)
-HUMAN_MODELS = ("orca", "social_force", "linear")  # how the humans move (crowdrl.sim.humans)
+# How one human moves (crowdrl.sim.humans); a human's index here is its code in CrowdState.human_model.
+HUMAN_MODELS = ("orca", "social_force", "linear")
+MIXED = "mixed"  # human_model="mixed": a share of the crowd follows each of HUMAN_MODELS (the *_share keys)
+HUMAN_MODEL_CHOICES = (*HUMAN_MODELS, MIXED)  # the values of CrowdConfig.human_model
+SHARE_KEYS = ("social_force_share", "linear_share")  # human_model="mixed": the shares of the non-ORCA models
 # CrowdConfig's keys of the humans' model (the Hydra env group's keys of the same names)
-HUMAN_KEYS = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
-SOCIAL_FORCE_KEYS = ("sf_tau", "sf_v0", "sf_sigma", "sf_substeps")  # read by human_model="social_force" only
+HUMAN_KEYS = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps", *SHARE_KEYS)
+# read only where social-force humans may be present (human_model="social_force", or "mixed" with a social_force_share)
+SOCIAL_FORCE_KEYS = ("sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
 
 
@@ -89,8 +96,15 @@ class CrowdConfig:
     # clipped to robot_v_pref; the ORCA robot baseline acts this way).
     robot_kinematics: str = "unicycle"
     # How the humans move (crowdrl.sim.humans): "orca" (RVO2's, the paper's), "social_force" (Helbing-Molnar
-    # as the socialforce 0.2.3 package computes it; open scenarios only) or "linear" (straight to the goal).
+    # as the socialforce 0.2.3 package computes it; open scenarios only) or "linear" (straight to the goal);
+    # "mixed": a crowd with a share of each, social_force_share and linear_share of it, ORCA the rest
+    # (per episode, the social-force humans are round(social_force_share * n) of its n present humans, the
+    # social-force and linear ones together round((social_force_share + linear_share) * n), halves rounded up;
+    # which humans follow which model is drawn from the episode's own random numbers: model_counts,
+    # crowdrl.sim.scenarios.assign_human_models).
     human_model: str = "orca"
+    social_force_share: float = 0.0  # human_model="mixed" only: in [0, 1]; with linear_share, sum <= 1
+    linear_share: float = 0.0
     # Whether the humans see the robot (one more ORCA neighbour / social-force pedestrian); invisible in the paper.
     robot_visible: bool = False
     # Social force (socialforce 0.2.3's defaults): relaxation time tau (s), the repulsive potential's
@@ -144,8 +158,8 @@ class CrowdConfig:
     def _check_human_keys(self) -> None:
         """The humans' model keys (the social-force parameters checked whatever the model, so that a bad
         value is named even before it is used)."""
-        if self.human_model not in HUMAN_MODELS:
-            raise ValueError(f"human_model must be one of {HUMAN_MODELS}, got {self.human_model!r}")
+        if self.human_model not in HUMAN_MODEL_CHOICES:
+            raise ValueError(f"human_model must be one of {HUMAN_MODEL_CHOICES}, got {self.human_model!r}")
         if not isinstance(self.robot_visible, bool):
             raise ValueError(f"robot_visible must be true or false, got {self.robot_visible!r}")
         for name in ("sf_tau", "sf_v0", "sf_sigma"):
@@ -158,13 +172,70 @@ class CrowdConfig:
             raise ValueError(f"human_model='social_force' runs in the open scenarios {OPEN_SCENARIOS} only, got "
                              f"scenario={self.scenario!r} (its reference, socialforce 0.2.3, samples walls as "
                              "points; use human_model='orca' or 'linear' among obstacles)")
+        self._check_shares()
+
+    def _check_shares(self) -> None:
+        """``human_model="mixed"``'s shares: each a number in [0, 1], their sum at most 1 (the rest: ORCA);
+        given (non-zero) only with ``human_model="mixed"``; a social-force share in the open scenarios only."""
+        for name in SHARE_KEYS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                               and 0 <= value <= 1):
+                raise ValueError(f"{name} must be a finite number in [0, 1], got {value!r}")
+            if value != 0 and self.human_model != MIXED:
+                raise ValueError(f"{name} ({value!r}) applies to human_model='mixed' only, got "
+                                 f"human_model={self.human_model!r} (set human_model='mixed' for a crowd with a share "
+                                 f"of each model, or {name}=0)")
+        total = self.social_force_share + self.linear_share
+        if total > 1 + 1e-9:
+            raise ValueError(f"social_force_share + linear_share must be <= 1 (the rest of the crowd is ORCA), got "
+                             f"{self.social_force_share!r} + {self.linear_share!r} = {total!r}")
+        if self.social_force_share > 0 and self.scenario in OBSTACLE_SCENARIOS:
+            raise ValueError(f"social_force_share ({self.social_force_share!r}) must be 0 in scenario={self.scenario!r}: "
+                             f"social-force humans run in the open scenarios {OPEN_SCENARIOS} only (their reference, "
+                             "socialforce 0.2.3, samples walls as points; mix ORCA and linear humans among obstacles)")
+
+    @property
+    def model_shares(self) -> tuple[float, float]:
+        """The cumulative shares ``(s, s + l)`` of the social-force and linear humans (``s = 1`` for
+        ``human_model="social_force"``, ``s + l = 1`` for ``"linear"``, both 0 for ``"orca"``); the sum is
+        clipped to 1."""
+        if self.human_model != MIXED:
+            s = 1.0 if self.human_model == "social_force" else 0.0
+            return s, 1.0 if self.human_model in ("social_force", "linear") else 0.0
+        return float(self.social_force_share), min(float(self.social_force_share + self.linear_share), 1.0)
+
+    def model_counts(self, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per episode of ``present`` humans (``[B]`` int64), how many follow each model: ``(social_force,
+        linear)`` (``[B]`` int64; ORCA the rest). The social-force humans are ``round(s * n)``, the social-force
+        and linear ones together ``round((s + l) * n)`` (:attr:`model_shares`; halves rounded up, in float64), so
+        the three counts always sum to ``n`` and each share's count lies within one human of ``share * n``."""
+        n = present.to(torch.float64)
+        s, sl = self.model_shares
+        first = torch.floor(s * n + 0.5).long()
+        both = torch.floor(sl * n + 0.5).long()
+        return first, both - first
+
+    @property
+    def human_models_present(self) -> tuple[str, ...]:
+        """The models of :data:`HUMAN_MODELS` that some human of some episode follows, in that order: the
+        config's model, or for ``"mixed"`` those that :meth:`model_counts` gives a human at any crowd size
+        ``min_humans..num_humans``."""
+        if self.human_model != MIXED:
+            return (self.human_model,)
+        low = self.min_humans if self.variable_crowd else self.num_humans
+        sizes = torch.arange(low, self.num_humans + 1)
+        sf, lin = self.model_counts(sizes)
+        counts = (sizes - sf - lin, sf, lin)
+        return tuple(m for m, c in zip(HUMAN_MODELS, counts) if bool((c > 0).any()))
 
     @property
     def humans_react_to_robot(self) -> bool:
-        """Whether the robot's motion changes the humans' (``robot_visible`` with a model that looks at
-        others: ORCA or social force; linear humans ignore everyone). A feature that replays a step with
+        """Whether the robot's motion changes the humans' (``robot_visible`` with humans of a model that looks
+        at others: ORCA or social force; linear humans ignore everyone; in a mixed crowd, whether some episode
+        has an ORCA or a social-force human, :attr:`human_models_present`). A feature that replays a step with
         another robot action and the same humans must refuse such a config."""
-        return self.robot_visible and self.human_model != "linear"
+        return self.robot_visible and any(m != "linear" for m in self.human_models_present)
 
     def _check_obstacle_keys(self) -> None:
         """The obstacle geometry's keys: finite, positive, and roomy enough for the agents (checked

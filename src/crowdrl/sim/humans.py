@@ -3,7 +3,20 @@
 * ``orca``: RVO2's ORCA among the humans (:mod:`crowdrl.sim.orca`), static obstacles included;
 * ``social_force``: Helbing–Molnár social force as the ``socialforce`` package computes it
   (:mod:`crowdrl.sim.social_force`), open scenarios only;
-* ``linear``: straight to the goal at the preferred speed, ignoring everyone (CrowdNav's ``linear``).
+* ``linear``: straight to the goal at the preferred speed, ignoring everyone (CrowdNav's ``linear``);
+* ``mixed``: a crowd with a share of each (``CrowdConfig.social_force_share``, ``linear_share``, ORCA the
+  rest), each human's model for the episode in ``CrowdState.human_model`` (drawn per episode:
+  :func:`crowdrl.sim.scenarios.assign_human_models`).
+
+A mixed crowd is what falls out of the single models naturally, in one batched step: each model that some
+human of the batch follows computes its velocities over the whole crowd, exactly as it would for a crowd
+of its own, and each human keeps its own model's answer. So an ORCA human treats every other present human,
+whatever its model, as an ORCA neighbour with its current velocity (and, as ORCA does, expects it to take
+half of the avoidance, which a linear human never does); a social-force human feels every other pedestrian
+(inside the call's sub-steps the others move as social-force pedestrians, as a visible robot already does;
+only the social-force humans' answers are kept); a linear human ignores everyone. A model no human of the
+batch follows is not computed, so shares (0, 0) step exactly as ``orca``, (1, 0) as ``social_force`` and
+(0, 1) as ``linear``.
 
 With ``CrowdConfig.robot_visible`` the robot is one more agent to the humans: an ORCA neighbour with
 its current velocity and radius (plus the ORCA margin), as CrowdNav's visible robot; one more
@@ -17,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import HUMAN_MODELS, MIXED, CrowdConfig
 from crowdrl.sim.obstacles import ObstacleEdges
 from crowdrl.sim.orca import OrcaParams, orca_solve
 from crowdrl.sim.social_force import compiled_social_force_velocities, social_force_velocities
@@ -71,15 +84,45 @@ def preferred_velocities(cfg: CrowdConfig, position: Tensor, goal: Tensor) -> Te
 def human_velocities(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdges | None = None
                      ) -> tuple[Tensor, Tensor]:
     """The humans' new velocities ``[B, N, 2]`` under ``cfg.human_model``, and ``[B, N]`` bool: whose ORCA
-    program fell back to 3-D (all false for the other models). Absent humans (``state.human_mask``) are
-    nobody's neighbours and keep their velocity.
+    program fell back to 3-D (all false for the other models' humans). Absent humans (``state.human_mask``)
+    are nobody's neighbours and keep their velocity. ``"mixed"``: :func:`mixed_humans`.
 
     ``obstacle_edges``: the processed edges of ``state.obstacles`` if at hand (ORCA only; else the
     polygons are processed here)."""
+    if cfg.human_model == MIXED:
+        return mixed_humans(cfg, state, obstacle_edges)
     if cfg.human_model == "orca":
         return orca_humans(cfg, state, obstacle_edges)
     velocities = social_force_humans(cfg, state) if cfg.human_model == "social_force" else linear_humans(cfg, state)
     return velocities, torch.zeros(state.human_mask.shape, dtype=torch.bool, device=state.device)
+
+
+def mixed_humans(cfg: CrowdConfig, state: CrowdState, obstacle_edges: ObstacleEdges | None = None
+                 ) -> tuple[Tensor, Tensor]:
+    """A mixed crowd's new velocities ``[B, N, 2]`` and ORCA fall-backs ``[B, N]`` (those of its ORCA humans):
+    each model that a present human of the batch follows (``state.human_model``) computed over the whole
+    crowd, the robot included as that model sees it (:func:`orca_humans`, :func:`social_force_humans`,
+    :func:`linear_humans`), and each human given its own model's answer (module docstring)."""
+    if state.human_model is None:
+        raise ValueError("state.human_model is None: a crowd with human_model='mixed' needs each human's model "
+                         "(crowdrl.sim.scenarios.initial_states draws it)")
+    model = state.human_model
+    present = state.human_mask if cfg.variable_crowd else torch.ones_like(state.human_mask)
+    # which models some present human of the batch follows: one host sync, and no model computed for nobody
+    used = torch.stack([(present & (model == code)).any() for code in range(len(HUMAN_MODELS))]).tolist()
+    velocities = state.human_velocity
+    infeasible = torch.zeros(state.human_mask.shape, dtype=torch.bool, device=state.device)
+    orca, social_force, linear = (HUMAN_MODELS.index(m) for m in ("orca", "social_force", "linear"))
+    if used[orca]:
+        mine = (model == orca).unsqueeze(-1)
+        orca_velocity, orca_infeasible = orca_humans(cfg, state, obstacle_edges)
+        velocities = torch.where(mine, orca_velocity, velocities)
+        infeasible = orca_infeasible & mine.squeeze(-1)
+    if used[social_force]:
+        velocities = torch.where((model == social_force).unsqueeze(-1), social_force_humans(cfg, state), velocities)
+    if used[linear]:
+        velocities = torch.where((model == linear).unsqueeze(-1), linear_humans(cfg, state), velocities)
+    return velocities, infeasible
 
 
 def _with_robot(humans: Tensor, robot: Tensor) -> Tensor:

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from crowdrl.sim import rng
-from crowdrl.sim.config import OBSTACLE_SCENARIOS, CrowdConfig
+from crowdrl.sim.config import HUMAN_MODELS, MIXED, OBSTACLE_SCENARIOS, CrowdConfig
 from crowdrl.sim.obstacles import Segments, path_obstacle_distance, point_obstacle_distance, segments_of
 from crowdrl.sim.state import CrowdState
 
@@ -60,6 +60,7 @@ _MAX_PAIRS = 1 << 21  # candidate-agent distances per chunk, bounding its memory
 
 # Index tags keeping the purposes of random draws apart.
 _TAG_SPAWN, _TAG_NEW_GOAL, _TAG_CROWD_SIZE, _TAG_OBSTACLES = range(4)
+_TAG_HUMAN_MODEL = 4  # human_model="mixed": which human follows which model (assign_human_models)
 PILLAR_ROUNDS = 64  # candidates per room pillar; exhausting them is an error
 OBSTACLE_GOAL_ROUNDS = 64  # candidates per new goal in the obstacle scenarios (a clear straight path is rarer)
 _OBSTACLE_CHUNK = 32  # spawn rounds evaluated at once in the obstacle scenarios (speed only)
@@ -151,10 +152,35 @@ def crowd_sizes(cfg: CrowdConfig, episode_key: Tensor) -> Tensor:
     return cfg.min_humans + torch.clamp((u * span).long(), max=span - 1)
 
 
+def assign_human_models(cfg: CrowdConfig, episode_key: Tensor, human_mask: Tensor) -> Tensor:
+    """Each human's model for the episodes ``episode_key [B]`` with present humans ``human_mask [B, N]``:
+    ``[B, N]`` int8, indices into :data:`~crowdrl.sim.config.HUMAN_MODELS` (0 orca, 1 social_force, 2 linear).
+
+    A single-model config: its model for every human (no random draw). ``human_model="mixed"``: each present
+    human ``i`` gets a 63-bit draw keyed by the episode and ``i`` (tag ``_TAG_HUMAN_MODEL``: no other draw of the
+    episode changes); ranked by it (ties, of probability ~2**-63, by index), the first of the episode's ``n``
+    present humans follow the social force and the next the linear model, as many as
+    :meth:`~crowdrl.sim.config.CrowdConfig.model_counts` says, the rest ORCA. A pure function of each episode's key
+    and crowd size (whatever the batch, device or maximum crowd), so the train, validation and test streams draw
+    their own; absent humans are marked ORCA (they take no part in anything)."""
+    B, N = human_mask.shape
+    device = episode_key.device
+    if cfg.human_model != MIXED:
+        return torch.full((B, N), HUMAN_MODELS.index(cfg.human_model), dtype=torch.int8, device=device)
+    draw = rng.fold(episode_key.view(B, 1), _TAG_HUMAN_MODEL, torch.arange(N, device=device))  # [B, N]
+    draw = draw.masked_fill(~human_mask, torch.iinfo(torch.int64).max)  # absent humans rank last
+    rank = torch.argsort(torch.argsort(draw, dim=-1, stable=True), dim=-1, stable=True)
+    social_force, linear = cfg.model_counts(human_mask.sum(-1))
+    code = torch.where(rank < social_force.unsqueeze(-1), HUMAN_MODELS.index("social_force"),
+                       torch.where(rank < (social_force + linear).unsqueeze(-1), HUMAN_MODELS.index("linear"),
+                                   HUMAN_MODELS.index("orca")))
+    return code.to(torch.int8)
+
+
 def _start_state(robot_pos: Tensor, robot_goal: Tensor, positions: Tensor, goals: Tensor, episode_key: Tensor,
-                 human_mask: Tensor | None, obstacles: Tensor, obstacle_mask: Tensor) -> CrowdState:
+                 human_mask: Tensor | None, obstacles: Tensor, obstacle_mask: Tensor, human_model: Tensor) -> CrowdState:
     """An episode's first state: everyone at rest, the robot facing +y; ``positions`` / ``goals``
-    ``[B, 1 + N, 2]`` hold the robot's row first, then the humans'."""
+    ``[B, 1 + N, 2]`` hold the robot's row first, then the humans'; ``human_model``: :func:`assign_human_models`."""
     B, N = positions.shape[0], positions.shape[1] - 1
     dtype, device = positions.dtype, positions.device
     return CrowdState(
@@ -171,6 +197,7 @@ def _start_state(robot_pos: Tensor, robot_goal: Tensor, positions: Tensor, goals
         human_mask=human_mask,
         obstacles=obstacles,
         obstacle_mask=obstacle_mask,
+        human_model=human_model,
     )
 
 
@@ -284,7 +311,8 @@ def initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch.dtype = t
         positions[:, h + 1], goals[:, h + 1] = start, goal
 
     no_obstacles = torch.zeros(B, 0, 2, 2, dtype=dtype, device=device), torch.zeros(B, 0, 2, dtype=torch.bool, device=device)
-    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, *no_obstacles)
+    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, *no_obstacles,
+                        assign_human_models(cfg, episode_key, human_mask))
 
 
 def _goal_draws(state: CrowdState, env: Tensor, human: Tensor, rounds: int) -> tuple[Tensor, ...]:
@@ -531,7 +559,8 @@ def _obstacle_initial_states(cfg: CrowdConfig, episode_key: Tensor, dtype: torch
             positions[done, h + 1], goals[done, h + 1] = s_pick[hit], g_pick[hit]
             episodes = episodes[~hit]
             first += rounds
-    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, obstacles, obstacle_mask)
+    return _start_state(robot_pos, robot_goal, positions, goals, episode_key, human_mask, obstacles, obstacle_mask,
+                        assign_human_models(cfg, episode_key, human_mask))
 
 
 def _obstacle_new_goals(cfg: CrowdConfig, state: CrowdState, needs_goal: Tensor) -> Tensor:

@@ -30,6 +30,12 @@ class CrowdState:
     # [B, P, V, 2] and the vertex mask [B, P, V]. P = 0 (the open scenarios) or None: no obstacles.
     obstacles: Tensor | None = None
     obstacle_mask: Tensor | None = None
+    # [B, N] int8: the model each human follows for the whole episode, its index in
+    # crowdrl.sim.config.HUMAN_MODELS (0 orca, 1 social_force, 2 linear): drawn per episode for
+    # human_model="mixed" (crowdrl.sim.scenarios.assign_human_models), the config's model for every human
+    # otherwise (which the step then does not read). None (a state built by hand): every human follows the
+    # config's model; a mixed crowd's step refuses it.
+    human_model: Tensor | None = None
 
     @property
     def batch_size(self) -> int:

@@ -19,7 +19,8 @@ from typing import Any
 import torch
 
 from crowdrl.files import atomic_write_bytes
-from crowdrl.sim.config import LIDAR_KEYS, OBSTACLE_KEYS, OPEN_SCENARIOS, SOCIAL_FORCE_KEYS, CrowdConfig
+from crowdrl.sim.config import (LIDAR_KEYS, MIXED, OBSTACLE_KEYS, OPEN_SCENARIOS, SHARE_KEYS, SOCIAL_FORCE_KEYS,
+                                CrowdConfig)
 from crowdrl.training.compat import stored_config
 from crowdrl.training.config import ConfigError, RunConfig, to_dict
 from crowdrl.training.validation import validate
@@ -35,7 +36,7 @@ class CheckpointError(RuntimeError):
 # the fingerprint at that value, so older run folders keep theirs.
 _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": CrowdConfig.human_model,
                     "robot_visible": CrowdConfig.robot_visible,
-                    **{k: getattr(CrowdConfig, k) for k in SOCIAL_FORCE_KEYS}}}
+                    **{k: getattr(CrowdConfig, k) for k in (*SOCIAL_FORCE_KEYS, *SHARE_KEYS)}}}
 
 
 _TRAIN_NEUTRAL = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None,
@@ -69,10 +70,12 @@ def fingerprinted(config: dict) -> dict[str, Any]:
             keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
     if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space;
         # the lidar keys nothing without a scan (runs recorded before them had none); the social-force
-        # parameters nothing unless the humans follow that model
+        # parameters nothing unless some humans follow that model (social_force, or mixed with a share of it)
+        social_force = keep["env"].get("human_model", "orca") == "social_force" or (
+            keep["env"].get("human_model") == MIXED and keep["env"].get("social_force_share", 0.0) > 0)
         drop = {"orca_backend", *(OBSTACLE_KEYS if keep["env"].get("scenario") in OPEN_SCENARIOS else ()),
                 *(LIDAR_KEYS if not keep["env"].get("lidar_rays") else ()),
-                *(SOCIAL_FORCE_KEYS if keep["env"].get("human_model", "orca") != "social_force" else ())}
+                *(SOCIAL_FORCE_KEYS if not social_force else ())}
         keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
     if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":

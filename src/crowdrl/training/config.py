@@ -64,9 +64,12 @@ class EnvConfig:
     # no network of crowdrl reads it
     lidar_rays: int = CrowdConfig.lidar_rays
     lidar_range: float = CrowdConfig.lidar_range  # m, readings clipped to it
-    # how the humans move (orca, social_force, linear) and whether they see the robot; the social-force
-    # parameters (socialforce 0.2.3's defaults) are read by human_model=social_force only
+    # how the humans move (orca, social_force, linear, or mixed: social_force_share and linear_share of the
+    # crowd, ORCA the rest) and whether they see the robot; the social-force parameters (socialforce 0.2.3's
+    # defaults) are read only where social-force humans may be present
     human_model: str = CrowdConfig.human_model
+    social_force_share: float = CrowdConfig.social_force_share
+    linear_share: float = CrowdConfig.linear_share
     robot_visible: bool = CrowdConfig.robot_visible
     sf_tau: float = CrowdConfig.sf_tau
     sf_v0: float = CrowdConfig.sf_v0

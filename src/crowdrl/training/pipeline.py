@@ -13,7 +13,7 @@ from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
 from crowdrl.training.config import EVAL_BATCH, RunConfig, to_dict
 from crowdrl.training.factories import make_actor, make_env
@@ -173,14 +173,25 @@ def _eval_crowd(scenario: str, humans: dict[str, Any]) -> CrowdConfig:
         raise ValueError(f"eval.{exc}") from None
 
 
+def _humans_shown(humans: dict[str, Any]) -> dict[str, Any]:
+    """The humans' keys an ``eval.json`` record shows: the model and visibility, and a mixed crowd's shares."""
+    shown = {"human_model": humans["human_model"], "robot_visible": humans["robot_visible"]}
+    if humans["human_model"] == MIXED:
+        shown.update({k: humans[k] for k in SHARE_KEYS})
+    return shown
+
+
 def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = None, scenario: str | None = None,
                   seed: int = TEST_SEED, episodes: int = 1000, num_humans: int | None = None, batch: int = EVAL_BATCH,
                   record_episode: int | None = None, device: str = "cpu", human_model: str | None = None,
-                  robot_visible: bool | None = None) -> tuple[dict[str, Any], Trajectory | None]:
+                  robot_visible: bool | None = None, social_force_share: float | None = None,
+                  linear_share: float | None = None) -> tuple[dict[str, Any], Trajectory | None]:
     """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
     test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
     recorded trajectory. ``human_model``/``robot_visible`` (``None``: the checkpoint's; ORCA humans blind to
-    the robot for a baseline) change how the humans move. Bad names and values raise ``ValueError`` naming
+    the robot for a baseline) change how the humans move; ``social_force_share``/``linear_share``: a mixed
+    crowd's shares (``None``: 0 where ``human_model`` is given, else the checkpoint's; a share other than 0
+    needs ``human_model="mixed"``, given or the checkpoint's). Bad names and values raise ``ValueError`` naming
     the argument."""
     from dataclasses import replace
 
@@ -207,7 +218,11 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         raise ValueError(f"eval.num_humans: must be an integer in 1..{MAX_HUMANS} or null, got {num_humans!r}")
     if record_episode is not None and not (isinstance(record_episode, int) and 0 <= record_episode < episodes):
         raise ValueError(f"eval.record_episode: must lie in 0..{episodes - 1} or be null, got {record_episode!r}")
-    humans = {k: v for k, v in (("human_model", human_model), ("robot_visible", robot_visible)) if v is not None}
+    humans = {k: v for k, v in (("human_model", human_model), ("robot_visible", robot_visible),
+                                ("social_force_share", social_force_share), ("linear_share", linear_share))
+              if v is not None}
+    if human_model is not None:  # another model: the shares are the ones given (none: 0), not the checkpoint's
+        humans = {**{k: getattr(CrowdConfig, k) for k in SHARE_KEYS}, **humans}
     # the metrics keep a row per episode: refuse a count whose records would not fit in memory
     max_steps = max(CrowdConfig(scenario=s).max_steps for s in ([scenario] if scenario else SCENARIOS))
     kept, free = kept_bytes(episodes, max_steps), available_memory(device if device.startswith("cuda") else "cpu")
@@ -220,13 +235,14 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
         metrics, traj = evaluate_orca(cfg, seed=seed, episodes=episodes, batch=batch, device=device,
                                       record_episode=record_episode)
-        shown = {"human_model": cfg.human_model, "robot_visible": cfg.robot_visible} if humans else {}
+        shown = _humans_shown(vars(cfg)) if humans else {}
         return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca", **shown), traj
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
     if humans:
-        _eval_crowd(scenario or run.env.scenario, {"human_model": run.env.human_model, **humans})
+        _eval_crowd(scenario or run.env.scenario, {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
+                    | humans)
         run = replace(run, env=replace(run.env, **humans))
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
@@ -244,5 +260,5 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                          + ("+planning" if run.planning.enabled else ""),
                          checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed,
-                         **({"human_model": run.env.human_model, "robot_visible": run.env.robot_visible} if humans else {}))
+                         **(_humans_shown(vars(run.env)) if humans else {}))
     return record, traj

@@ -171,11 +171,15 @@ def check_counterfactual(run: RunConfig) -> None:
     check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
           f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
     check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
-    humans = CrowdConfig(human_model=run.env.human_model, robot_visible=run.env.robot_visible)
+    low, high = crowd_range(run.env)
+    humans = CrowdConfig(num_humans=high, min_humans=low if low < high else None, human_model=run.env.human_model,
+                         robot_visible=run.env.robot_visible, social_force_share=run.env.social_force_share,
+                         linear_share=run.env.linear_share)
     if c.mode != "off" and humans.humans_react_to_robot:
+        who = " and ".join(m for m in humans.human_models_present if m != "linear")
         raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
                           f"after another action, which is exact only while they ignore the robot; with "
-                          f"env.robot_visible=true the {run.env.human_model} humans react to it (set "
+                          f"env.robot_visible=true the {who} humans react to it (set "
                           f"train.counterfactual.mode=off or env.robot_visible=false)")
 
 
