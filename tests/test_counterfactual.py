@@ -201,6 +201,7 @@ def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(t
 
     cfg = OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce.yaml"))
     cfg.pop("hydra")
+    cfg.pop("defaults")  # its typed schema, reproduce_schema
     cfg["out"] = str(tmp_path)
     plan = make_plan(cfg)
     assert plan.manifest()["counterfactual"]["mode"] == "off"

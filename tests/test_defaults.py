@@ -85,3 +85,27 @@ def test_the_demo_command_compiles_the_acting_network_at_the_demo_preset_only():
     assert not compose_run(["preset=smoke"])[1].train.compile_acting
     cfg, run = compose_run(["seed=1"])
     assert cfg.train.compile_acting and run.planning.enabled and run.seed == 1
+
+
+@pytest.mark.parametrize("name", ["evaluate", "export", "reproduce"])
+def test_each_commands_yaml_states_its_typed_schemas_keys_and_defaults(name):
+    """conf/<command>.yaml (what a user reads) and the command's typed schema (what Hydra checks it
+    against) hold the same keys and defaults; the ones the yaml leaves to elsewhere: evaluate's env (the
+    env group, null by default), reproduce's out (an interpolation of budget, planning, counterfactual)."""
+    from dataclasses import asdict
+
+    from omegaconf import OmegaConf
+
+    from crowdrl.cli.schemas import EvaluateConfig, ExportConfig
+    from crowdrl.reproduction.config import ReproduceConfig
+
+    yaml = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / f"{name}.yaml"))
+    assert yaml.pop("defaults")[0] == f"{name}_schema"  # composed onto the schema, as config.yaml onto run_schema
+    yaml.pop("hydra")
+    if name == "reproduce":
+        schema = asdict(ReproduceConfig(out=yaml["out"]))
+    else:
+        schema = asdict({"evaluate": EvaluateConfig, "export": ExportConfig}[name]())
+    if name == "evaluate":
+        assert schema.pop("env")["scenario"] is None
+    assert _flat(yaml) == _flat(schema)

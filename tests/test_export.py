@@ -217,9 +217,9 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     elif bad == "out":
         (tmp_path / "file").write_text("")
         args[1], words = f"out={tmp_path / 'file' / 'p.onnx'}", ["out: cannot write", "is a file, not a folder"]
-    elif bad == "check":  # not a bool: was taken as true
+    elif bad == "check":  # not a bool: was taken as true (the typed schema refuses it)
         args.append("check=maybe")
-        words = ["check: got 'maybe'; true or false"]
+        words = ["export.py: check:", "'maybe' is not a valid bool"]
     elif bad == "exists":  # was overwritten silently
         (tmp_path / "p.onnx").write_text("mine")
         words = ["out:", "p.onnx exists; pass overwrite=true"]
@@ -228,7 +228,7 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
         words = ["format: got 'tflite'; allowed: onnx"]
     else:  # a misspelt key added with + would otherwise be silently ignored
         args.append("+opsett=18")
-        words = ["opsett: not read by export.py (unknown key)"]
+        words = ["opsett: not read by export.py (unknown key); allowed: checkpoint, out, format, opset, check, overwrite"]
     proc = subprocess.run([*EXPORT, *args], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]

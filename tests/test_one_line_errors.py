@@ -55,6 +55,52 @@ def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch,
     assert not (scratch / "out").exists() and "HYDRA_FULL_ERROR" not in os.environ
 
 
+EVALUATE_KEYS = ("allowed: checkpoint, policy, eval.seed, eval.episodes, eval.num_humans, eval.human_model, "
+                 "eval.robot_visible, eval.batch, eval.record_episode, threads, device, env=<scenario> (the crowd size "
+                 "is eval.num_humans")
+EXPORT_KEYS = "allowed: checkpoint, out, format, opset, check, overwrite"
+REPRODUCE_KEYS = ("allowed: budget, encoders, variants, seeds, train_scenario, scenarios, episodes, jobs, launcher, "
+                  "threads, reps, planning, counterfactual.mode, counterfactual.actions, counterfactual.k, "
+                  "counterfactual.weight, out")
+
+
+@pytest.mark.parametrize("module, args, words", [
+    # an unknown key: refused by Hydra against the typed schema, or (added with +) by the command's reading of it
+    ("evaluate", ["eval.episods=5"], ["evaluate.py: eval.episods: not read by evaluate.py (unknown key)", EVALUATE_KEYS]),
+    ("evaluate", ["+eval.episods=5"], ["evaluate.py: eval.episods: not read by evaluate.py (unknown key)", EVALUATE_KEYS]),
+    ("evaluate", ["+encoder=sarl"], ["evaluate.py: encoder: not read by evaluate.py (unknown key)", EVALUATE_KEYS]),
+    ("evaluate", ["env=square", "env.num_humans=20"], ["evaluate.py: env.num_humans: not read by evaluate.py", EVALUATE_KEYS]),
+    ("evaluate", ["env.human_model=linear"], ["evaluate.py: env.human_model: not read by evaluate.py", EVALUATE_KEYS]),
+    ("export", ["opsett=18"], ["export.py: opsett: not read by export.py (unknown key)", EXPORT_KEYS]),
+    ("export", ["+opsett=18"], ["export.py: opsett: not read by export.py (unknown key)", EXPORT_KEYS]),
+    ("reproduce", ["varients=[egreedy]"], ["reproduce.py: varients: not read by reproduce.py (unknown key)",
+                                           REPRODUCE_KEYS]),
+    ("reproduce", ["+counterfactual.modes=merged"], ["reproduce.py: counterfactual.modes: not read by reproduce.py "
+                                                     "(unknown key)", REPRODUCE_KEYS]),
+    # a value of the wrong type
+    ("evaluate", ["eval.episodes=abc"], ["evaluate.py: eval.episodes:", "'abc' of type 'str' could not be converted to Integer"]),
+    ("evaluate", ["eval.robot_visible=maybe"], ["evaluate.py: eval.robot_visible:", "'maybe' is not a valid bool"]),
+    ("export", ["opset=abc"], ["export.py: opset:", "'abc' of type 'str' could not be converted to Integer"]),
+    ("export", ["overwrite=maybe"], ["export.py: overwrite:", "'maybe' is not a valid bool"]),
+    ("reproduce", ["episodes=abc"], ["reproduce.py: episodes:", "'abc' of type 'str' could not be converted to Integer"]),
+    ("reproduce", ["planning=maybe"], ["reproduce.py: planning:", "'maybe' is not a valid bool"]),
+    ("reproduce", ["counterfactual.k=abc"], ["reproduce.py: counterfactual.k:", "could not be converted to Integer"]),
+    ("reproduce", ["seeds=[0,x]"], ["reproduce.py: seeds", "'x' of type 'str' could not be converted to Integer"]),
+    ("reproduce", ["variants=egreedy"], ["reproduce.py: variants:", "give a list in brackets: variants=[...]"]),
+])
+def test_typed_schemas_refuse_unknown_keys_and_wrong_types_naming_them_and_write_nothing(monkeypatch, capsys, scratch,
+                                                                                        module, args, words):
+    """evaluate, export and reproduce read their config through a typed schema (crowdrl.cli.schemas,
+    crowdrl.reproduction.config): one line naming the key (and the keys allowed), exit 2, no folder."""
+    first = {"evaluate": ["policy=orca", "eval.episodes=2"], "export": ["checkpoint=runs/x", "out=p.onnx"],
+             "reproduce": ["budget=smoke", "variants=[egreedy]", "seeds=[0]", "episodes=2"]}[module]
+    where = {"evaluate": "hydra.run.dir=out", "export": "hydra.run.dir=.", "reproduce": "out=out"}[module]
+    code, err = run_cli(monkeypatch, capsys, module, *first, *args, where)
+    line = one_line(err)
+    assert code == 2 and all(w in line for w in words), line
+    assert list(scratch.iterdir()) == []  # no run or out folder, no .hydra, no log, no p.onnx
+
+
 def test_a_hydra_error_in_a_real_process_is_one_line(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "train.py"), "seed=abc"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=120, env={**os.environ, "WANDB_MODE": "offline"})

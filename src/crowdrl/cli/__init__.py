@@ -16,6 +16,11 @@ for the Hydra ones): refused input, a
 Hydra or OmegaConf error (an unknown option, a value of the wrong type, a missing config), a full
 disk or a read-only or forbidden folder end it with one line ``<program>: <message>`` on stderr and
 exit status 2; Ctrl-C / SIGTERM with 130. Only a bug shows a traceback (exit 1).
+
+Each Hydra command composes its config onto a typed schema registered in Hydra's ConfigStore (the
+first entry of its defaults list: ``train``: :class:`crowdrl.training.config.RunConfig`; ``evaluate``,
+``export``: :mod:`crowdrl.cli.schemas`; ``reproduce``: :class:`crowdrl.reproduction.config.ReproduceConfig`),
+so Hydra refuses an unknown key or a value of the wrong type, naming it, before anything is written.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import errno
 import functools
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Any, Callable, NoReturn, TypeVar
@@ -71,7 +77,8 @@ def folder_error_line(exc: OSError) -> str | None:
 def config_error_line(exc: BaseException) -> str | None:
     """One line for a Hydra or OmegaConf error (``seed: Value 'abc' of type 'str' could not be converted
     to Integer``; ``In 'evaluate': Could not find 'env/mars'; available options in 'env': circle, ...``),
-    the key first when the error names one; ``None`` for any other exception."""
+    the key first when the error names one (a typed list given one value: how to give a list); ``None``
+    for any other exception."""
     try:
         from hydra.errors import HydraException
         from omegaconf.errors import OmegaConfBaseException
@@ -87,7 +94,29 @@ def config_error_line(exc: BaseException) -> str | None:
         key = key or getattr(err, "full_key", None) or None
         parts += _message_parts(str(err))
     text = "; ".join(dict.fromkeys(p for p in parts if p)) or type(exc).__name__
+    if key and "is not a ListConfig, list or tuple" in text:  # a typed list given one value (variants=egreedy)
+        text = f"{text.rstrip('.')}; give a list in brackets: {key}=[...]"
     return text if not key or text.startswith(f"{key}:") else f"{key}: {text}"
+
+
+def unknown_key(exc: BaseException) -> str | None:
+    """The dotted key a Hydra/OmegaConf error refuses as absent from the command's typed schema
+    (``eval.episods=5``: ``eval.episods``; ``+encoder=sarl``: ``encoder``); ``None`` for another error
+    and for a key of Hydra's own config (``hydra.*``)."""
+    try:
+        from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+    except ImportError:  # pragma: no cover - omegaconf comes with crowdrl
+        return None
+    key = None
+    for err in (exc, exc.__cause__):
+        if isinstance(err, (ConfigKeyError, ConfigAttributeError)):
+            key = getattr(err, "full_key", None) or None
+        elif err is not None and "ConfigKeyError raised while composing config" in str(err):  # a group's keys
+            found = re.search(r"^\s*full_key: (\S+)$", str(err), re.MULTILINE)
+            key = found.group(1) if found else None
+        if key:
+            break
+    return None if not key or key == "hydra" or key.startswith("hydra.") else str(key)
 
 
 def _message_parts(text: str) -> list[str]:
@@ -110,11 +139,13 @@ def _message_parts(text: str) -> list[str]:
     return [p.replace("{options}", ", ".join(options or [])) if p.endswith("{options}") else p for p in parts]
 
 
-def one_line_errors(module: str) -> Callable[[F], F]:
+def one_line_errors(module: str, allowed: Callable[[], str] | None = None) -> Callable[[F], F]:
     """Decorate a command's ``main`` (outside ``@hydra.main``) so that Hydra's and OmegaConf's errors and
     :data:`FOLDER_ERRNOS` end it with one line and exit 2 (:func:`exit_with_error`), and Ctrl-C with
     130. Hydra is told to raise (``HYDRA_FULL_ERROR=1`` while ``main`` runs) instead of printing its
-    own report and exiting 1; anything else propagates as it is."""
+    own report and exiting 1; anything else propagates as it is. With ``allowed`` (the keys the command
+    reads, as a text), a key its typed schema lacks is refused as ``<key>: not read by <module>.py
+    (unknown key); allowed: <allowed()>`` (:func:`unknown_key`)."""
     def decorate(main: F) -> F:
         @functools.wraps(main)
         def run(*args: Any, **kwargs: Any) -> Any:
@@ -126,6 +157,9 @@ def one_line_errors(module: str) -> Callable[[F], F]:
                 exit_with_error(module, "interrupted", code=130)
             except Exception as exc:
                 # Hydra's MissingConfigException is an OSError too
+                key = unknown_key(exc) if allowed is not None else None
+                if key is not None:
+                    exit_with_error(module, f"{key}: not read by {module}.py (unknown key); allowed: {allowed()}")
                 line = (folder_error_line(exc) if isinstance(exc, OSError) else None) or config_error_line(exc)
                 if line is None:
                     raise
@@ -141,16 +175,17 @@ def one_line_errors(module: str) -> Callable[[F], F]:
     return decorate
 
 
-def hydra_command(module: str, config_name: str) -> Callable[[F], F]:
+def hydra_command(module: str, config_name: str, allowed: Callable[[], str] | None = None) -> Callable[[F], F]:
     """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
     :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
-    job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command."""
+    job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command.
+    ``allowed``: the keys the command reads, named when a key its typed schema lacks is refused."""
     def decorate(task: F) -> F:
         import hydra
 
         from crowdrl.resources import config_dir
 
         hydra_main = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")
-        return one_line_errors(module)(hydra_main(one_line_errors(module)(task)))
+        return one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(task)))
 
     return decorate

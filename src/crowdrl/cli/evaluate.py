@@ -15,12 +15,16 @@ same numbers whatever ``eval.batch``.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir
+
+if TYPE_CHECKING:
+    from crowdrl.cli.schemas import EvaluateConfig
 
 CONF_DIR = str(config_dir())
 
@@ -34,29 +38,45 @@ def _register_resolvers() -> None:
 _register_resolvers()
 
 
-def check_keys(c: dict, overrides: list[str]) -> None:
-    """Refuse keys that nothing reads, naming them: a misspelt key Hydra lets through when added with
-    ``+`` (``+eval.episods=5``), a group of train.py (``+encoder=sarl``), an ``env.*`` key other than
-    ``env.scenario`` (the crowd size is ``eval.num_humans``). The known keys are those of
-    ``conf/evaluate.yaml`` and of the ``conf/env/`` files."""
-    from crowdrl.training.config import ConfigError
-    from crowdrl.training.validation import unknown_keys
+def _register_schema() -> None:
+    """The typed schema of ``conf/evaluate.yaml`` (its defaults list's ``evaluate_schema``): Hydra
+    refuses an unknown key or a value of the wrong type, naming it."""
+    from hydra.core.config_store import ConfigStore
 
-    known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "evaluate.yaml"))
-    known.pop("defaults", None)
-    known["env"] = {k: None for f in sorted((Path(CONF_DIR) / "env").glob("*.yaml"))
-                    for k in OmegaConf.to_container(OmegaConf.load(f))}
-    bad = unknown_keys(c, known)
-    bad += [key for key in (item.split("=", 1)[0].lstrip("+~") for item in overrides)
-            if key.startswith("env.") and key != "env.scenario"]
+    from crowdrl.cli.schemas import EvaluateConfig
+
+    ConfigStore.instance().store(name="evaluate_schema", node=EvaluateConfig)
+
+
+_register_schema()
+
+
+def allowed_hint() -> str:
+    """The keys evaluate.py reads, for its messages: its schema's, ``env`` as ``env=<scenario>``."""
+    from crowdrl.cli.schemas import EvaluateConfig
+    from crowdrl.schema import allowed_keys
+
+    keys = [k for k in allowed_keys(EvaluateConfig) if not k.startswith("env.")]
+    return (f"{', '.join(keys)}, env=<scenario> (the crowd size is eval.num_humans, the humans' model "
+            f"eval.human_model, whether they see the robot eval.robot_visible)")
+
+
+def read_settings(cfg: DictConfig, overrides: list[str]) -> EvaluateConfig:
+    """``cfg`` as an :class:`~crowdrl.cli.schemas.EvaluateConfig`. Refused, naming the key: one the
+    schema lacks, added with ``+`` (``+eval.episods=5``, ``+encoder=sarl``: Hydra refuses the others),
+    and an override of an ``env.*`` key other than ``env.scenario``: ``env=<scenario>`` selects
+    ``conf/env/<scenario>.yaml``, of which only the scenario is read (the crowd is ``eval.*``)."""
+    from crowdrl.cli.schemas import EvaluateConfig
+    from crowdrl.schema import read_typed
+
+    bad = [key for key in (item.split("=", 1)[0].lstrip("+~") for item in overrides)
+           if key.startswith("env.") and key != "env.scenario"]
     if bad:
-        raise ConfigError(f"{', '.join(bad)}: not read by evaluate.py (unknown key); allowed: checkpoint, policy, "
-                          f"{', '.join(f'eval.{k}' for k in known['eval'])}, threads, device, env=<scenario> "
-                          f"(the crowd size is eval.num_humans, the humans' model eval.human_model, whether "
-                          f"they see the robot eval.robot_visible)")
+        raise ValueError(f"{', '.join(bad)}: not read by evaluate.py (unknown key); allowed: {allowed_hint()}")
+    return read_typed(EvaluateConfig, cfg, reader="evaluate.py", allowed=allowed_hint())
 
 
-@hydra_command("evaluate", "evaluate")
+@hydra_command("evaluate", "evaluate", allowed=allowed_hint)
 def main(cfg: DictConfig) -> dict:
     out = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -77,18 +97,17 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
     from crowdrl.training.validation import check_device, check_threads
     from crowdrl.training.pipeline import evaluate_spec
 
-    c = OmegaConf.to_container(cfg, resolve=True)
     try:
-        check_keys(c, list(HydraConfig.get().overrides.task))
-        check_device(str(c["device"]))
-        check_threads(c["threads"])
-        torch.set_num_threads(c["threads"])
-        scenario = (c.get("env") or {}).get("scenario")  # env=<name> selects conf/env/<name>.yaml
-        e = c["eval"]
-        record, traj = evaluate_spec(checkpoint=c["checkpoint"], policy=c["policy"], scenario=scenario, seed=e["seed"],
-                                     episodes=e["episodes"], num_humans=e["num_humans"], batch=e["batch"],
-                                     record_episode=e["record_episode"], device=c["device"],
-                                     human_model=e["human_model"], robot_visible=e["robot_visible"])
+        c = read_settings(cfg, list(HydraConfig.get().overrides.task))
+        check_device(c.device)
+        check_threads(c.threads)
+        torch.set_num_threads(c.threads)
+        scenario = c.env.scenario  # env=<name> selects conf/env/<name>.yaml (None: the checkpoint's)
+        e = c.eval
+        record, traj = evaluate_spec(checkpoint=c.checkpoint, policy=c.policy, scenario=scenario, seed=e.seed,
+                                     episodes=e.episodes, num_humans=e.num_humans, batch=e.batch,
+                                     record_episode=e.record_episode, device=c.device,
+                                     human_model=e.human_model, robot_visible=e.robot_visible)
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 
@@ -98,9 +117,9 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
     if traj is not None:
         from crowdrl.viz import animate_trajectory, plot_trajectory
 
-        name = f"{record['scenario']}_case{e['record_episode']}"
+        name = f"{record['scenario']}_case{e.record_episode}"
         plot_trajectory(traj, out / f"{name}.png", title=f"{record['policy']}, {record['scenario']} test case "
-                                                          f"{e['record_episode']}")
+                                                          f"{e.record_episode}")
         animate_trajectory(traj, out / f"{name}.gif")
     print(f"{record['episodes']} {record['scenario']} test cases, test seed {record['seed']}")
     print(markdown_table([record]))

@@ -19,7 +19,7 @@ import os
 from pathlib import Path
 from typing import NoReturn
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from crowdrl.cli import exit_with_error, hydra_command
 from crowdrl.resources import config_dir, onnx_example
@@ -35,37 +35,53 @@ def fail(message: str) -> NoReturn:
     exit_with_error("export", message)
 
 
-@hydra_command("export", "export")
+def _register_schema() -> None:
+    """The typed schema of ``conf/export.yaml`` (its defaults list's ``export_schema``): Hydra refuses
+    an unknown key or a value of the wrong type (``opset=abc``, ``check=maybe``), naming it."""
+    from hydra.core.config_store import ConfigStore
+
+    from crowdrl.cli.schemas import ExportConfig
+
+    ConfigStore.instance().store(name="export_schema", node=ExportConfig)
+
+
+_register_schema()
+
+
+def allowed_hint() -> str:
+    """The keys export.py reads (its schema's), for its messages."""
+    from crowdrl.cli.schemas import ExportConfig
+    from crowdrl.schema import allowed_keys
+
+    return ", ".join(allowed_keys(ExportConfig))
+
+
+@hydra_command("export", "export", allowed=allowed_hint)
 def main(cfg: DictConfig) -> dict:
-    c = OmegaConf.to_container(cfg, resolve=True)
+    from crowdrl.cli.schemas import ExportConfig
     from crowdrl.export import FORMATS
-    from crowdrl.training.validation import unknown_keys
+    from crowdrl.schema import SchemaError, read_typed
 
-    known = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "export.yaml"))
-    known.pop("defaults", None)
-    bad = unknown_keys(c, known)  # a key added with + that nothing reads (Hydra refuses other unknown keys)
-    if bad:
-        fail(f"{', '.join(bad)}: not read by export.py (unknown key); allowed: {', '.join(sorted(known))}")
-
-    if c["format"] not in FORMATS:
-        fail(f"format: got {c['format']!r}; allowed: {', '.join(FORMATS)}")
-    if not c["checkpoint"]:
+    try:  # a key added with + that nothing reads (Hydra refuses other unknown keys and wrong types)
+        c = read_typed(ExportConfig, cfg, reader="export.py", allowed=allowed_hint())
+    except SchemaError as exc:
+        fail(str(exc))
+    if c.format not in FORMATS:
+        fail(f"format: got {c.format!r}; allowed: {', '.join(FORMATS)}")
+    if not c.checkpoint:
         fail("checkpoint: required (a run folder or a .pt file), e.g. checkpoint=runs/<folder>")
-    if not c["out"]:
+    if not c.out:
         fail("out: required (the .onnx file to write), e.g. out=policy.onnx")
-    if isinstance(c["opset"], bool) or not isinstance(c["opset"], int) or not 14 <= c["opset"] <= 20:
-        fail(f"opset: got {c['opset']!r}; an integer in 14..20")
-    for key in ("check", "overwrite"):
-        if not isinstance(c[key], bool):
-            fail(f"{key}: got {c[key]!r}; true or false")
-    if Path(c["out"]).exists() and not c["overwrite"]:
-        fail(f"out: {c['out']} exists; pass overwrite=true to replace it, or choose another out=")
+    if not 14 <= c.opset <= 20:
+        fail(f"opset: got {c.opset!r}; an integer in 14..20")
+    if Path(c.out).exists() and not c.overwrite:
+        fail(f"out: {c.out} exists; pass overwrite=true to replace it, or choose another out=")
 
     from crowdrl.export import export_onnx
     from crowdrl.training import CheckpointError
 
     try:
-        info = export_onnx(c["checkpoint"], c["out"], opset=c["opset"], check=c["check"])
+        info = export_onnx(c.checkpoint, c.out, opset=c.opset, check=c.check)
     except CheckpointError as exc:
         fail(f"checkpoint: {exc}")
     except ValueError as exc:  # export_onnx names the argument (out)

@@ -196,6 +196,26 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
 
 
+def _register_schema() -> None:
+    """The typed schema of ``conf/reproduce.yaml`` (its defaults list's ``reproduce_schema``): Hydra
+    refuses an unknown key or a value of the wrong type, naming it."""
+    from hydra.core.config_store import ConfigStore
+
+    from crowdrl.reproduction.config import ReproduceConfig
+
+    ConfigStore.instance().store(name="reproduce_schema", node=ReproduceConfig)
+
+
+_register_schema()
+
+
+def allowed_hint() -> str:
+    """The keys reproduce.py reads (its schema's), for its messages."""
+    from crowdrl.reproduction.config import ReproduceConfig
+    from crowdrl.schema import allowed_keys
+
+    return ", ".join(allowed_keys(ReproduceConfig))
+
 # the default out= keeps planning and plain tables apart: results/<budget>-planning, results/<budget>
 if not OmegaConf.has_resolver("crowdrl_counterfactual_suffix"):
     OmegaConf.register_new_resolver("crowdrl_counterfactual_suffix",
@@ -204,7 +224,7 @@ if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 
 
-@hydra_command("reproduce", "reproduce")
+@hydra_command("reproduce", "reproduce", allowed=allowed_hint)
 def main(cfg: DictConfig) -> None:
     from crowdrl.evaluation.report import RecordError
 

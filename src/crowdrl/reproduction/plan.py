@@ -3,19 +3,20 @@ budget, checked before anything runs, and where each run's folder and test recor
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from crowdrl.reproduction.config import ReproduceConfig
 from crowdrl.resources import config_dir
 
 CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
-KEYS = {"budget", "encoders", "variants", "seeds", "train_scenario", "scenarios", "episodes", "jobs", "launcher",
-        "threads", "reps", "out", "planning", "counterfactual"}
+KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
 COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}  # train.counterfactual's defaults
 
 
@@ -78,19 +79,23 @@ class Plan:
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
-    """Validate the settings (each error names its key)."""
+    """Validate the settings (each error names its key): read into the typed schema
+    (:class:`~crowdrl.reproduction.config.ReproduceConfig`: an unknown key, a value of the wrong type;
+    keys left out take its defaults), then the allowed names and ranges."""
     from crowdrl.models import ENCODERS
+    from crowdrl.schema import SchemaError, read_typed
     from crowdrl.sim.config import SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
     from crowdrl.training.config import EXPLORATIONS
 
-    unknown = sorted(set(cfg) - KEYS)
-    if unknown:
-        raise PlanError(f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(KEYS))}")
+    try:
+        s = read_typed(ReproduceConfig, cfg, reader="reproduce.py")
+    except SchemaError as exc:
+        raise PlanError(str(exc)) from None
 
     def names(key: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
-        value = cfg[key]
-        if isinstance(value, str) or not value:
+        value = getattr(s, key)
+        if not value:
             raise PlanError(f"{key}: give a non-empty list, e.g. {key}=[{allowed[0]}]")
         bad = [v for v in value if v not in allowed]
         if bad:
@@ -99,38 +104,30 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
             raise PlanError(f"{key}: listed twice: {value}")
         return tuple(value)
 
-    def integer(key: str, low: int) -> int:
-        value = cfg[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+    def at_least(key: str, low: int) -> int:
+        value = getattr(s, key)
+        if value < low:
             raise PlanError(f"{key}: must be an integer >= {low}, got {value!r}")
         return value
 
-    if cfg["budget"] not in BUDGETS:
-        raise PlanError(f"budget: unknown {cfg['budget']!r}; allowed: {', '.join(BUDGETS)}")
-    if cfg["launcher"] not in LAUNCHERS:
-        raise PlanError(f"launcher: unknown {cfg['launcher']!r}; allowed: {', '.join(LAUNCHERS)}")
-    if cfg["train_scenario"] not in SCENARIOS:
-        raise PlanError(f"train_scenario: unknown {cfg['train_scenario']!r}; allowed: {', '.join(SCENARIOS)}")
-    seeds = cfg["seeds"]
-    if isinstance(seeds, (int, str)) or not seeds:
+    if s.budget not in BUDGETS:
+        raise PlanError(f"budget: unknown {s.budget!r}; allowed: {', '.join(BUDGETS)}")
+    if s.launcher not in LAUNCHERS:
+        raise PlanError(f"launcher: unknown {s.launcher!r}; allowed: {', '.join(LAUNCHERS)}")
+    if s.train_scenario not in SCENARIOS:
+        raise PlanError(f"train_scenario: unknown {s.train_scenario!r}; allowed: {', '.join(SCENARIOS)}")
+    seeds = list(s.seeds)
+    if not seeds:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
-    if (any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED for s in seeds)
-            or len(set(seeds)) != len(seeds)):
+    if any(not 0 <= seed <= MAX_SEED for seed in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
-    planning = cfg.get("planning", True)
-    if not isinstance(planning, bool):
-        raise PlanError(f"planning: must be true or false, got {planning!r}")
-    counterfactual = cfg.get("counterfactual") or {}
-    if not isinstance(counterfactual, dict) or set(counterfactual) - set(COUNTERFACTUAL_OFF):
-        raise PlanError(f"counterfactual: give train.counterfactual's keys ({', '.join(COUNTERFACTUAL_OFF)}), e.g. "
-                        f"counterfactual.mode=second_update; got {counterfactual!r}")
-    counterfactual = {**COUNTERFACTUAL_OFF, **counterfactual}
-    return Plan(counterfactual=tuple(counterfactual.items()), planning=planning, budget=cfg["budget"],
+    counterfactual = dataclasses.asdict(s.counterfactual)
+    return Plan(counterfactual=tuple(counterfactual.items()), planning=s.planning, budget=s.budget,
                 encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
-                train_scenario=cfg["train_scenario"], scenarios=names("scenarios", SCENARIOS),
-                episodes=integer("episodes", 1), jobs=integer("jobs", 1), launcher=cfg["launcher"],
-                threads=integer("threads", 1), reps=integer("reps", 100), out=Path(cfg["out"]))
+                train_scenario=s.train_scenario, scenarios=names("scenarios", SCENARIOS),
+                episodes=at_least("episodes", 1), jobs=at_least("jobs", 1), launcher=s.launcher,
+                threads=at_least("threads", 1), reps=at_least("reps", 100), out=Path(s.out))
 
 
 

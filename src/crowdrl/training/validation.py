@@ -29,7 +29,14 @@ def check(cond: bool, key: str, msg: str) -> None:
 
 
 def one_of(value: Any, key: str, allowed: tuple | list) -> None:
-    """Raise :class:`ConfigError` naming ``key`` and the ``allowed`` values unless ``value`` is one of them."""
+    """Raise :class:`ConfigError` naming ``key`` and the ``allowed`` values unless ``value`` is one of them.
+
+    >>> one_of("csv", "logger.name", ("wandb", "csv"))
+    >>> one_of("tensorboard", "logger.name", ("wandb", "csv"))
+    Traceback (most recent call last):
+        ...
+    crowdrl.training.config.ConfigError: logger.name: got 'tensorboard'; allowed: wandb, csv
+    """
     check(value in allowed, key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
 
 
@@ -187,24 +194,6 @@ def check_threads(threads: Any, key: str = "threads") -> None:
     """An integer >= 1 (torch threads), otherwise a :class:`ConfigError` naming ``key``."""
     check(isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1, key,
           f"must be an integer >= 1, got {threads!r}")
-
-
-def unknown_keys(cfg: Any, reference: Any, prefix: str = "") -> list[str]:
-    """The dotted keys of the nested dict ``cfg`` that the nested dict ``reference`` lacks (a key
-    added with ``+key=value`` that nothing reads); below a key whose reference is not a dict, nothing.
-
-    >>> unknown_keys({"eval": {"episods": 5, "seed": 0}, "encoder": {"name": "sarl"}}, {"eval": {"seed": 0}})
-    ['eval.episods', 'encoder']
-    """
-    if not (isinstance(cfg, dict) and isinstance(reference, dict)):
-        return []
-    out = []
-    for key, value in cfg.items():
-        if key not in reference:
-            out.append(f"{prefix}{key}")
-        else:
-            out += unknown_keys(value, reference[key], f"{prefix}{key}.")
-    return out
 
 
 def check_device(device: str, key: str = "device") -> None:
