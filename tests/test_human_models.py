@@ -198,8 +198,15 @@ def test_evaluate_py_takes_the_humans_model_in_one_override_and_refuses_a_bad_on
     assert proc.returncode == 0, proc.stderr[-2000:]
     record = json.loads((tmp_path / "ok" / "eval.json").read_text())
     assert (record["human_model"], record["robot_visible"]) == ("social_force", True)
+    proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null", "eval.human_model=mixed",
+                "eval.social_force_share=0.5", "eval.linear_share=0.25", f"hydra.run.dir={tmp_path / 'mixed'}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    record = json.loads((tmp_path / "mixed" / "eval.json").read_text())
+    assert (record["human_model"], record["social_force_share"], record["linear_share"]) == ("mixed", 0.5, 0.25)
     for args, named in ((["env=room", "eval.human_model=social_force"], "eval.human_model"),
-                        (["eval.robot_visible=3"], "eval.robot_visible")):
+                        (["eval.robot_visible=maybe"], "eval.robot_visible"),
+                        (["eval.human_model=mixed", "eval.linear_share=1.5"], "eval.linear_share"),
+                        (["eval.social_force_share=0.2"], "eval.social_force_share")):
         proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'bad'}")
         assert proc.returncode == 2 and named in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
         assert not (tmp_path / "bad").exists()

@@ -4,6 +4,7 @@
     python experiments/evaluate.py checkpoint=runs/<folder>                  # its scenario, 1000 cases
     python experiments/evaluate.py checkpoint=runs/<folder> env=square       # zero-shot on square
     python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=social_force eval.robot_visible=true
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=mixed eval.social_force_share=0.3 eval.linear_share=0.3
     python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
 
@@ -58,7 +59,8 @@ def allowed_hint() -> str:
 
     keys = [k for k in allowed_keys(EvaluateConfig) if not k.startswith("env.")]
     return (f"{', '.join(keys)}, env=<scenario> (the crowd size is eval.num_humans, the humans' model "
-            f"eval.human_model, whether they see the robot eval.robot_visible)")
+            f"eval.human_model with eval.social_force_share / eval.linear_share for a mixed crowd, whether they "
+            f"see the robot eval.robot_visible)")
 
 
 def read_settings(cfg: DictConfig, overrides: list[str]) -> EvaluateConfig:
@@ -107,7 +109,8 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
         record, traj = evaluate_spec(checkpoint=c.checkpoint, policy=c.policy, scenario=scenario, seed=e.seed,
                                      episodes=e.episodes, num_humans=e.num_humans, batch=e.batch,
                                      record_episode=e.record_episode, device=c.device,
-                                     human_model=e.human_model, robot_visible=e.robot_visible)
+                                     human_model=e.human_model, robot_visible=e.robot_visible,
+                                     social_force_share=e.social_force_share, linear_share=e.linear_share)
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 

@@ -25,8 +25,11 @@ class EvalConfig:
     seed: int = 0  # test stream seed
     episodes: int = 1000
     num_humans: Optional[int] = None  # default: the checkpoint's (10 for a baseline)
-    human_model: Optional[str] = None  # orca | social_force | linear (default: the checkpoint's; orca for a baseline)
+    human_model: Optional[str] = None  # orca | social_force | linear | mixed (default: the checkpoint's; orca for a baseline)
     robot_visible: Optional[bool] = None  # default: the checkpoint's; false for a baseline
+    # a mixed crowd's shares (human_model=mixed; ORCA the rest); null: 0 when eval.human_model is given, else the checkpoint's
+    social_force_share: Optional[float] = None
+    linear_share: Optional[float] = None
     batch: int = EVAL_BATCH  # episodes stepped at once (results do not depend on it)
     record_episode: Optional[int] = 0  # PNG + GIF of this test case (null: none)
 
