@@ -28,7 +28,7 @@ two scenarios for each measurement, so both see the same machine), and adds the 
 obstacle scenario's rates to circle's (``core/circ``, ``env/circ``) to its row; ``edges`` is the
 scenario's obstacle edges (doorway: 2 wall segments, one each side of the gap). ``--compare-humans``
 likewise measures the humans' models (``orca``, ``orca`` seeing the robot, ``social_force`` with and
-without, ``linear``) in ``--scenario`` and adds each row's ratios to invisible ORCA's (``core/orca``,
+without, ``linear``, a ``mixed`` crowd of 0.3 social force, 0.3 linear and 0.4 ORCA) in ``--scenario`` and adds each row's ratios to invisible ORCA's (``core/orca``,
 ``env/orca``); no reference column there (it simulates blind ORCA humans only).
 
 Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
@@ -375,7 +375,14 @@ def compare_obstacles(args, step_fn) -> tuple[list[dict], dict]:
     return rows, ref_cache
 
 
-HUMAN_CELLS = (("orca", False), ("orca", True), ("social_force", False), ("social_force", True), ("linear", False))
+HUMAN_CELLS = (("orca", False), ("orca", True), ("social_force", False), ("social_force", True), ("linear", False),
+               ("mixed", False))
+MIXED_SHARES = {"social_force_share": 0.3, "linear_share": 0.3}  # the mixed cell: ORCA the other 0.4 (as human_model_transfer.py)
+
+
+def human_cell_name(model: str, visible: bool) -> str:
+    shares = f" ({MIXED_SHARES['social_force_share']} social force, {MIXED_SHARES['linear_share']} linear)"
+    return model + (shares if model == "mixed" else "") + (" (robot visible)" if visible else "")
 
 
 def compare_humans(args, step_fn) -> tuple[list[dict], dict]:
@@ -387,10 +394,10 @@ def compare_humans(args, step_fn) -> tuple[list[dict], dict]:
         torch.set_num_threads(threads)
         for n in args.num_humans:
             cfgs = {c: CrowdConfig(scenario=args.scenario, num_humans=n, orca_backend=orca_backend(args.backend),
-                                   human_model=c[0], robot_visible=c[1]) for c in HUMAN_CELLS}
+                                   human_model=c[0], robot_visible=c[1], **(MIXED_SHARES if c[0] == "mixed" else {}))
+                    for c in HUMAN_CELLS}
             for b in args.batch_sizes:
-                cells = {c: dict(humans=c[0] + (" (robot visible)" if c[1] else ""), threads=threads, N=n, B=b)
-                         for c in HUMAN_CELLS}
+                cells = {c: dict(humans=human_cell_name(*c), threads=threads, N=n, B=b) for c in HUMAN_CELLS}
                 for c in HUMAN_CELLS:
                     cells[c].update(bench_core(cfgs[c], b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
                 if not args.no_env:
