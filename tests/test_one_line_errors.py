@@ -43,7 +43,8 @@ def scratch(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("module, args, words", [
     ("train", ["seed=abc"], ["train.py: seed:", "could not be converted to Integer"]),
-    ("train", ["sede=1"], ["sede:", "not in 'RunConfig'"]),
+    ("train", ["sede=1"], ["train.py: sede: not read by train.py (unknown key); allowed: env,", " seed,"]),
+    ("train", ["train.lrr=1"], ["train.lrr: not read by train.py (unknown key); allowed: train.num_envs,", "train.lr,"]),
     ("train", ["resume="], ["resume: is empty"]),
     ("evaluate", ["env=mars"], ["Could not find 'env/mars'", "available options in 'env': circle"]),
     ("demo", ["train.num_envs=abc"], ["demo.py: train.num_envs:", "could not be converted to Integer"]),
@@ -56,7 +57,8 @@ def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch,
 
 
 EVALUATE_KEYS = ("allowed: checkpoint, policy, eval.seed, eval.episodes, eval.num_humans, eval.human_model, "
-                 "eval.robot_visible, eval.batch, eval.record_episode, threads, device, env=<scenario> (the crowd size "
+                 "eval.robot_visible, eval.social_force_share, eval.linear_share, eval.batch, eval.record_episode, "
+                 "threads, device, env=<scenario> (the crowd size "
                  "is eval.num_humans")
 EXPORT_KEYS = "allowed: checkpoint, out, format, opset, check, overwrite"
 REPRODUCE_KEYS = ("allowed: budget, encoders, variants, seeds, train_scenario, scenarios, episodes, jobs, launcher, "

@@ -139,13 +139,14 @@ def _message_parts(text: str) -> list[str]:
     return [p.replace("{options}", ", ".join(options or [])) if p.endswith("{options}") else p for p in parts]
 
 
-def one_line_errors(module: str, allowed: Callable[[], str] | None = None) -> Callable[[F], F]:
+def one_line_errors(module: str, allowed: Callable[[str], str] | None = None) -> Callable[[F], F]:
     """Decorate a command's ``main`` (outside ``@hydra.main``) so that Hydra's and OmegaConf's errors and
     :data:`FOLDER_ERRNOS` end it with one line and exit 2 (:func:`exit_with_error`), and Ctrl-C with
     130. Hydra is told to raise (``HYDRA_FULL_ERROR=1`` while ``main`` runs) instead of printing its
     own report and exiting 1; anything else propagates as it is. With ``allowed`` (the keys the command
-    reads, as a text), a key its typed schema lacks is refused as ``<key>: not read by <module>.py
-    (unknown key); allowed: <allowed()>`` (:func:`unknown_key`)."""
+    reads that a refused key could have meant, as a text, given that key), a key its typed schema lacks
+    is refused as ``<key>: not read by <module>.py (unknown key); allowed: <allowed(key)>``
+    (:func:`unknown_key`), without Hydra's advice to add it with ``+``."""
     def decorate(main: F) -> F:
         @functools.wraps(main)
         def run(*args: Any, **kwargs: Any) -> Any:
@@ -159,7 +160,7 @@ def one_line_errors(module: str, allowed: Callable[[], str] | None = None) -> Ca
                 # Hydra's MissingConfigException is an OSError too
                 key = unknown_key(exc) if allowed is not None else None
                 if key is not None:
-                    exit_with_error(module, f"{key}: not read by {module}.py (unknown key); allowed: {allowed()}")
+                    exit_with_error(module, f"{key}: not read by {module}.py (unknown key); allowed: {allowed(key)}")
                 line = (folder_error_line(exc) if isinstance(exc, OSError) else None) or config_error_line(exc)
                 if line is None:
                     raise
@@ -175,7 +176,7 @@ def one_line_errors(module: str, allowed: Callable[[], str] | None = None) -> Ca
     return decorate
 
 
-def hydra_command(module: str, config_name: str, allowed: Callable[[], str] | None = None) -> Callable[[F], F]:
+def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] | None = None) -> Callable[[F], F]:
     """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
     :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
     job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command.

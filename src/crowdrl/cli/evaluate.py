@@ -52,7 +52,7 @@ def _register_schema() -> None:
 _register_schema()
 
 
-def allowed_hint() -> str:
+def allowed_hint(key: str = "") -> str:
     """The keys evaluate.py reads, for its messages: its schema's, ``env`` as ``env=<scenario>``."""
     from crowdrl.cli.schemas import EvaluateConfig
     from crowdrl.schema import allowed_keys

@@ -48,7 +48,7 @@ def _register_schema() -> None:
 _register_schema()
 
 
-def allowed_hint() -> str:
+def allowed_hint(key: str = "") -> str:
     """The keys export.py reads (its schema's), for its messages."""
     from crowdrl.cli.schemas import ExportConfig
     from crowdrl.schema import allowed_keys

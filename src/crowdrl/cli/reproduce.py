@@ -209,7 +209,7 @@ def _register_schema() -> None:
 _register_schema()
 
 
-def allowed_hint() -> str:
+def allowed_hint(key: str = "") -> str:
     """The keys reproduce.py reads (its schema's), for its messages."""
     from crowdrl.reproduction.config import ReproduceConfig
     from crowdrl.schema import allowed_keys

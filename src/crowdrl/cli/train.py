@@ -42,7 +42,14 @@ def _register_schema() -> None:
 _register_schema()
 
 
-@hydra_command("train", "config")
+def allowed_hint(key: str = "") -> str:
+    """The run config's keys beside a refused ``key`` (its section's), for the unknown-key message."""
+    from crowdrl.training.validation import keys_beside
+
+    return ", ".join(keys_beside(key)) or "the keys of conf/config.yaml (docs/training.md)"
+
+
+@hydra_command("train", "config", allowed=allowed_hint)
 def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
     from crowdrl.training.pipeline import completed_summary

@@ -222,14 +222,25 @@ def _floats(node: Any, prefix: str = "") -> list[tuple[str, float]]:
     return out
 
 
-def _hint(exc: Exception) -> str:
-    key = getattr(exc, "full_key", None)
-    if not key:
-        return ""
+def keys_beside(key: str) -> list[str]:
+    """The run config's keys at the level of the dotted ``key`` (its parent section's fields), what a
+    misspelt key could have meant; empty when that parent is not a section.
+
+    >>> keys_beside("train.lrr")[:3]
+    ['train.num_envs', 'train.steps_per_batch', 'train.total_frames']
+    """
     parent = key.rsplit(".", 1)[0] if "." in key else ""
     node: Any = RunConfig()
     for part in filter(None, parent.split(".")):
         node = getattr(node, part, None)
-    if dataclasses.is_dataclass(node):
-        return f" (key {key!r}; allowed keys here: {', '.join(f.name for f in dataclasses.fields(node))})"
-    return f" (key {key!r})"
+    if not dataclasses.is_dataclass(node):
+        return []
+    return [f"{parent}.{f.name}" if parent else f.name for f in dataclasses.fields(node)]
+
+
+def _hint(exc: Exception) -> str:
+    key = getattr(exc, "full_key", None)
+    if not key:
+        return ""
+    beside = [k.rsplit(".", 1)[-1] for k in keys_beside(key)]
+    return f" (key {key!r}; allowed keys here: {', '.join(beside)})" if beside else f" (key {key!r})"
