@@ -52,3 +52,26 @@ def test_reproduce_with_another_encoder_names_its_runs_and_rows_by_it(tmp_path):
     assert rows["mp_rgl+egreedy"]["success_rate_paper"] == 0.941 and "p_improve" in rows["mp_rgl+re3"]
     assert "p_improve" not in rows["mp_rgl+egreedy"]
     assert "| mp_rgl+egreedy | 1 |" in (out / "table.md").read_text()
+
+
+def test_a_table_rebuilt_by_a_call_that_trains_nothing_keeps_how_the_training_call_launched(tmp_path):
+    """The wall-clock line names the jobs of the call that trained the runs, not of a later call that only
+    re-tabled them; a table written before that was recorded names none."""
+    from omegaconf import OmegaConf
+
+    from crowdrl.evaluation.reproduction import launch_mode, markdown, recorded_wall, write_table
+    from crowdrl.reproduction.plan import make_plan
+    from crowdrl.resources import config_dir
+
+    cfg = OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce.yaml"))
+    cfg.pop("hydra"), cfg.pop("defaults")
+    trained = make_plan({**cfg, "out": str(tmp_path), "jobs": 2})
+    write_table(trained, [], 600.0, launch_mode(trained))
+    assert recorded_wall(trained) == (600.0, "jobs=2")
+    retable = make_plan({**cfg, "out": str(tmp_path), "jobs": 1})
+    assert "call (jobs=2) that trained or tested the last runs: 10.0 min" in markdown(retable, [], *recorded_wall(retable))
+    old = json.loads((tmp_path / "table.json").read_text())
+    del old["wall_how"]
+    (tmp_path / "table.json").write_text(json.dumps(old))
+    assert recorded_wall(retable) == (600.0, None)
+    assert "`reproduce.py` call that trained or tested the last runs: 10.0 min" in markdown(retable, [], 600.0, None)

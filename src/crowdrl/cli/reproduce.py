@@ -185,13 +185,14 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
                 failures.append(f"{what} {which}: {exc!r}")
     if failures:
         raise RuntimeError("some runs failed (rerun to resume them):\n  " + "\n  ".join(failures))
-    from crowdrl.evaluation.reproduction import collect, recorded_wall_s, table_rows, write_table
+    from crowdrl.evaluation.reproduction import collect, launch_mode, recorded_wall, table_rows, write_table
     from crowdrl.viz.reproduction import write_figures
 
     rows = table_rows(plan, collect(plan))
     wall_s = time.perf_counter() - start
-    # a call that trained nothing keeps the wall-clock of the call that did (recorded in table.json)
-    write_table(plan, rows, wall_s if pending else recorded_wall_s(plan))
+    # a call that trained nothing keeps the wall-clock of the call that did, and how it launched its runs
+    # (recorded in table.json), not its own jobs=
+    write_table(plan, rows, *((wall_s, launch_mode(plan)) if pending else recorded_wall(plan)))
     write_figures(plan, rows)
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
 

@@ -66,8 +66,15 @@ def _cell(row: dict[str, Any], key: str, digits: int) -> str:
 TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg return", "P(improve on ε-greedy)")
 
 
-def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> str:
-    """``table.md``: what was run and how the cells read, then one table per test scenario."""
+def launch_mode(plan: Plan) -> str:
+    """How ``plan``'s runs are launched, as the table names it: ``jobs=<n>`` locally, else ``launcher=slurm``."""
+    return f"jobs={plan.jobs}" if plan.launcher == "local" else f"launcher={plan.launcher}"
+
+
+def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_how: str | None = None) -> str:
+    """``table.md``: what was run and how the cells read, then one table per test scenario. ``wall_s`` and
+    ``wall_how`` (:func:`launch_mode`): the wall-clock of the call that trained or tested the last runs and
+    how that call launched them (``None``: not recorded)."""
     from crowdrl.sim.config import OPEN_SCENARIOS
 
     seeds = ", ".join(map(str, plan.seeds))
@@ -92,8 +99,8 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
         lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`): {min(run_minutes):.1f}–"
                   f"{max(run_minutes):.1f} min."]
     if wall_s is not None:
-        how = f"jobs={plan.jobs}" if plan.launcher == "local" else "launcher=slurm"
-        lines += [f"Wall-clock of the `reproduce.py` call ({how}) that trained or tested the last runs: "
+        how = f" ({wall_how})" if wall_how else ""
+        lines += [f"Wall-clock of the `reproduce.py` call{how} that trained or tested the last runs: "
                   f"{wall_s / 60:.1f} min."]
     lines.append("")
     for scenario in plan.scenarios:
@@ -104,25 +111,28 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> st
     return "\n".join(lines)
 
 
-def recorded_wall_s(plan: Plan) -> float | None:
-    """The wall-clock ``table.json`` in ``out=`` records for the call that trained its last runs, if any."""
+def recorded_wall(plan: Plan) -> tuple[float | None, str | None]:
+    """The wall-clock ``table.json`` in ``out=`` records for the call that trained its last runs, and how
+    that call launched them (``None`` where not recorded: tables written before ``wall_how``)."""
     path = plan.out / "table.json"
     if not path.exists():
-        return None
-    wall_s = json.loads(path.read_text()).get("wall_s")
-    return float(wall_s) if isinstance(wall_s, (int, float)) else None
+        return None, None
+    data = json.loads(path.read_text())
+    wall_s, how = data.get("wall_s"), data.get("wall_how")
+    return (float(wall_s) if isinstance(wall_s, (int, float)) else None), (how if isinstance(how, str) else None)
 
 
-def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None) -> None:
-    """``table.md``, ``table.json`` (with the manifest and the wall-clock) and ``table.csv`` in ``out=``."""
+def write_table(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_how: str | None = None) -> None:
+    """``table.md``, ``table.json`` (with the manifest, the wall-clock and how that call launched its runs)
+    and ``table.csv`` in ``out=``."""
     import csv
     import io
 
     from crowdrl.files import atomic_write_bytes, atomic_write_json
 
-    atomic_write_bytes(plan.out / "table.md", markdown(plan, rows, wall_s).encode())
+    atomic_write_bytes(plan.out / "table.md", markdown(plan, rows, wall_s, wall_how).encode())
     atomic_write_json(plan.out / "table.json", {"manifest": plan.manifest(), "seeds": list(plan.seeds),
-                                                "wall_s": wall_s, "rows": rows})
+                                                "wall_s": wall_s, "wall_how": wall_how, "rows": rows})
     flat = [{k: v for k, v in r.items() if not k.endswith("_per_seed")} for r in rows]
     fields = list(dict.fromkeys(k for r in flat for k in r))
     buf = io.StringIO()
