@@ -18,10 +18,14 @@ and where each is computed:
   reward of the alternative action (plus the bonus), ``m = 1``, ``terminated`` its collision or goal;
   with ``mode="merged"`` the batch carries ``loss_weight`` and the loss is ``Σ weight·(Q(s, a) - y)²``;
 * ``γ^m (1 - terminated) Q_target(s', argmax_a Q(s', a))``: the double-DQN bootstrap, here
-  (:meth:`D3QNLoss.bootstrap`); a truncation (timeout) bootstraps. ``DQNLoss`` swaps the target parameters into
-the online module and routes every pass through tensordict modules (a cost measured in
-``docs/benchmarks.md``); here the target network is a plain frozen copy, refreshed by
-:meth:`D3QNLoss.update_target`.
+  (:meth:`D3QNLoss.bootstrap`); a truncation (timeout) bootstraps;
+* ``huber_delta`` (``train.huber_delta``, off by default): the Huber loss of that δ in place of the
+  square; the target network is refreshed by hard copies (:meth:`D3QNLoss.update_target`) or, with
+  ``train.target_tau < 1``, Polyak steps (:meth:`D3QNLoss.update_target_polyak`).
+
+``DQNLoss`` swaps the target parameters into the online module and routes every pass through
+tensordict modules (a cost measured in ``docs/benchmarks.md``); here the target network is a plain
+frozen copy.
 
 The math is written once, as functions of the parameters (:meth:`D3QNLoss.bootstrap`,
 :meth:`D3QNLoss.objective`, through ``torch.func.functional_call``). ``forward`` evaluates them
