@@ -5,7 +5,7 @@ episodes (never the test cases).
 Per setting, over seeds: the best validation success, the mean of the last 5 validations, the
 validations that fell more than 0.2 below the run's running best (collapses), and the frames and
 training minutes (collection + updates + validation, from the run's own timers) to the first
-validation >= 0.90.
+validation >= 0.90; completed runs only (unfinished ones are counted apart, with their frames).
 
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --jobs 2
     python experiments/counterfactual_ablation.py --out results/counterfactual-ablation --table-only
@@ -137,11 +137,15 @@ def table(out: Path, settings: list[str], seeds: list[int]) -> str:
     for setting in settings:
         runs = {seed: summarise(out / "runs" / f"{setting}-s{seed}") for seed in seeds}
         records[setting] = runs
-        done = [r for r in runs.values() if r is not None]
+        # a run still training (or killed before its end) is counted apart, not averaged in
+        done = [r for r in runs.values() if r is not None and r["state"] == "completed"]
+        unfinished = [r for r in runs.values() if r is not None and r["state"] != "completed"]
         if not done:
             continue
         reach = [r["frames_to_90"] for r in done]
-        rows.append([setting, f"{len(done)} ({', '.join(str(r['frames'] // 1000) + 'k' for r in done)})",
+        later = f"; {len(unfinished)} unfinished ({', '.join(str(r['frames'] // 1000) + 'k' for r in unfinished)})"
+        rows.append([setting, f"{len(done)} ({', '.join(str(r['frames'] // 1000) + 'k' for r in done)})"
+                     + (later if unfinished else ""),
                      fmt([r["best"] for r in done], 2), fmt([r["last5"] for r in done], 3),
                      str(sum(r["collapses"] for r in done)), fmt([r["late_drop"] for r in done], 2),
                      fmt([f / 1000 if f is not None else None for f in reach], 0) + f" [{sum(f is None for f in reach)} never]",
