@@ -28,8 +28,9 @@ two scenarios for each measurement, so both see the same machine), and adds the 
 obstacle scenario's rates to circle's (``core/circ``, ``env/circ``) to its row; ``edges`` is the
 scenario's obstacle edges (doorway: 2 wall segments, one each side of the gap). ``--compare-humans``
 likewise measures the humans' models (``orca``, ``orca`` seeing the robot, ``social_force`` with and
-without, ``linear``, a ``mixed`` crowd of 0.3 social force, 0.3 linear and 0.4 ORCA) in ``--scenario`` and adds each row's ratios to invisible ORCA's (``core/orca``,
-``env/orca``); no reference column there (it simulates blind ORCA humans only).
+without, ``linear``, a ``mixed`` crowd of 0.3 social force, 0.3 linear and 0.4 ORCA) in ``--scenario``
+and adds each row's ratios to invisible ORCA's (``core/orca``, ``env/orca``); no reference column there
+(it simulates blind ORCA humans only).
 
 Memory: ``state MB`` is the tensor bytes of the batched state. The peak resident memory
 (printed once) is measured in a fresh subprocess at ``--memory-batch-size`` (default B=65,536),

@@ -4,7 +4,8 @@
     python experiments/evaluate.py checkpoint=runs/<folder>                  # its scenario, 1000 cases
     python experiments/evaluate.py checkpoint=runs/<folder> env=square       # zero-shot on square
     python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=social_force eval.robot_visible=true
-    python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=mixed eval.social_force_share=0.3 eval.linear_share=0.3
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.human_model=mixed \
+        eval.social_force_share=0.3 eval.linear_share=0.3
     python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
 
