@@ -359,7 +359,7 @@ def test_planning_is_an_axis_of_reproduce(tmp_path):
     cmd = [sys.executable, str(root / "experiments" / "reproduce.py"), "budget=smoke", "variants=[egreedy]",
            "seeds=[0]", "episodes=4"]
     env = {**os.environ, "WANDB_MODE": "offline"}
-    bad = subprocess.run([*cmd, "planning=yes", f"out={tmp_path / 'a'}"], capture_output=True, text=True,
+    bad = subprocess.run([*cmd, "planning=maybe", f"out={tmp_path / 'a'}"], capture_output=True, text=True,
                          timeout=120, cwd=root, env=env)
     assert bad.returncode == 2 and bad.stderr.strip().startswith("reproduce.py: planning"), bad.stderr[-800:]
     out = tmp_path / "b"

@@ -155,6 +155,7 @@ def test_default_folders_of_every_entry_point_carry_a_unique_part():
     """Evaluations (and demo runs) started in the same second never share a folder."""
     from hydra import compose, initialize_config_dir
 
+    import crowdrl.cli.evaluate  # noqa: F401  registers evaluate's typed schema (evaluate_schema)
     from crowdrl.training.config import register_resolvers
 
     register_resolvers()
