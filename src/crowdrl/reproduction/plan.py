@@ -11,13 +11,14 @@ from typing import Any
 
 from crowdrl.reproduction.config import ReproduceConfig
 from crowdrl.resources import config_dir
+from crowdrl.training.config import CounterfactualConfig
 
 CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
-COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}  # train.counterfactual's defaults
+COUNTERFACTUAL_OFF = dataclasses.asdict(CounterfactualConfig())  # train.counterfactual's defaults
 
 
 class PlanError(ValueError):
