@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -211,6 +212,39 @@ def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(t
     assert "train.counterfactual.k=3" in run_overrides(plan, plan.methods[0])
     with pytest.raises(PlanError, match="counterfactual"):
         make_plan({**cfg, "counterfactual": {"modes": "merged"}})
+
+
+def test_reproduce_gives_the_stability_levers_to_every_run_and_names_them_in_its_manifest(tmp_path):
+    from omegaconf import OmegaConf
+
+    from crowdrl.cli.reproduce import PlanError, check_manifest, check_runs, make_plan, run_overrides
+    from crowdrl.resources import config_dir
+
+    cfg = OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce.yaml"))
+    cfg.pop("hydra")
+    cfg.pop("defaults")
+    cfg.update(out=str(tmp_path), budget="smoke", variants=["egreedy"])
+    off = make_plan(cfg)
+    assert not any(o.startswith("train.") and "counterfactual" not in o and "test_episodes" not in o
+                   for o in run_overrides(off, off.methods[0]))  # at the defaults: the runs' overrides as before
+    assert off.manifest()["levers"] == {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None,
+                                        "lr_end": None, "q_layer_norm": False}
+    on = make_plan({**cfg, "train": {"target_tau": 0.005, "huber_delta": 1.0, "q_layer_norm": True}})
+    overrides = run_overrides(on, on.methods[0])
+    assert {"train.target_tau=0.005", "train.huber_delta=1.0", "train.q_layer_norm=true"} <= set(overrides)
+    check_runs(on)  # train.py takes them
+    assert on.manifest()["levers"]["target_tau"] == 0.005
+    # a folder made without levers (its manifest predates the key) refuses a call that turns one on
+    manifest = off.manifest()
+    manifest.pop("levers")
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    check_manifest(off)
+    with pytest.raises(PlanError, match="levers"):
+        check_manifest(on)
+    with pytest.raises(PlanError, match="train.target_tau"):  # out of range: train's own check, naming the key
+        check_runs(make_plan({**cfg, "train": {"target_tau": 0.0}}))
+    with pytest.raises(PlanError, match="target_taus"):
+        make_plan({**cfg, "train": {"target_taus": 0.5}})
 
 
 def _tiny_run(total_frames: int, mode: str = "second_update"):

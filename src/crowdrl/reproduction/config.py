@@ -10,11 +10,25 @@ values (allowed names, ranges).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List
+from typing import List, Optional
 
 from omegaconf import MISSING
 
-from crowdrl.training.config import CounterfactualConfig
+from crowdrl.training.config import CounterfactualConfig, TrainConfig
+
+
+@dataclass
+class LeverConfig:
+    """The stability levers every run of a reproduction trains with: ``train.py``'s ``train.*`` keys of
+    the same names and meanings (``conf/config.yaml``), each off at its default (the paper's
+    learner). Only the values that differ from the default reach the runs, so a folder made before
+    this section keeps its manifest."""
+
+    target_tau: float = TrainConfig.target_tau  # Polyak target updates after every update (1: hard copies)
+    huber_delta: Optional[float] = TrainConfig.huber_delta  # a Huber loss of this delta (null: squared error)
+    grad_clip_norm: Optional[float] = TrainConfig.grad_clip_norm  # the Q gradients' norm clipped (null: not)
+    lr_end: Optional[float] = TrainConfig.lr_end  # the learning rate decayed linearly to this (null: constant)
+    q_layer_norm: bool = TrainConfig.q_layer_norm  # LayerNorm in the Q head's hidden layers
 
 
 @dataclass
@@ -35,7 +49,8 @@ class ReproduceConfig:
     reps: int = 2000  # bootstrap resamples for the confidence intervals
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled)
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)  # every run's train.counterfactual
+    train: LeverConfig = field(default_factory=LeverConfig)  # every run's stability levers (train.target_tau, ...)
     out: str = MISSING  # the results folder
 
 
-__all__ = ["ReproduceConfig"]
+__all__ = ["LeverConfig", "ReproduceConfig"]

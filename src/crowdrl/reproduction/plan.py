@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from crowdrl.reproduction.config import ReproduceConfig
+from crowdrl.reproduction.config import LeverConfig, ReproduceConfig
 from crowdrl.resources import config_dir
 from crowdrl.training.config import CounterfactualConfig
 
@@ -19,6 +19,7 @@ LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
 COUNTERFACTUAL_OFF = dataclasses.asdict(CounterfactualConfig())  # train.counterfactual's defaults
+LEVERS_OFF = dataclasses.asdict(LeverConfig())  # the stability levers' defaults (the paper's learner)
 
 
 class PlanError(ValueError):
@@ -63,6 +64,14 @@ class Plan:
     out: Path
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled), as the paper's did
     counterfactual: tuple[tuple[str, Any], ...] = tuple(COUNTERFACTUAL_OFF.items())  # every run's train.counterfactual
+    levers: tuple[tuple[str, Any], ...] = ()  # every run's stability levers that differ from their defaults
+
+    def lever_overrides(self) -> list[str]:
+        """``train.<lever>=<value>`` for each lever this reproduction turns on (none at the defaults)."""
+        def text(value: Any) -> str:
+            return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+
+        return [f"train.{key}={text(value)}" for key, value in self.levers]
 
     @property
     def methods(self) -> tuple[Method, ...]:
@@ -76,7 +85,8 @@ class Plan:
 
         out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
                "train_scenario": self.train_scenario, "episodes": self.episodes}
-        return {**out, "planning": self.planning, "counterfactual": dict(self.counterfactual)}
+        return {**out, "planning": self.planning, "counterfactual": dict(self.counterfactual),
+                "levers": {**LEVERS_OFF, **dict(self.levers)}}
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -123,7 +133,8 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     if any(not 0 <= seed <= MAX_SEED for seed in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
     counterfactual = dataclasses.asdict(s.counterfactual)
-    return Plan(counterfactual=tuple(counterfactual.items()), planning=s.planning, budget=s.budget,
+    levers = tuple((k, v) for k, v in dataclasses.asdict(s.train).items() if v != LEVERS_OFF[k])
+    return Plan(counterfactual=tuple(counterfactual.items()), levers=levers, planning=s.planning, budget=s.budget,
                 encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
                 train_scenario=s.train_scenario, scenarios=names("scenarios", SCENARIOS),
@@ -167,6 +178,7 @@ def check_manifest(plan: Plan) -> None:
         have = json.loads(path.read_text())
         have.setdefault("planning", False)  # folders made before the key trained without planning
         have.setdefault("counterfactual", COUNTERFACTUAL_OFF)  # ... and without counterfactual experience
+        have.setdefault("levers", LEVERS_OFF)  # ... and without stability levers
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
             said = ", ".join(f"{k}: folder {a!r} vs now {b!r}" for k, (a, b) in diff.items())
@@ -186,7 +198,7 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
             f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
             f"planning.enabled={str(plan.planning).lower()}",
             *[f"train.counterfactual.{k}={v}" for k, v in plan.counterfactual
-              if dict(plan.counterfactual)["mode"] != "off"]]
+              if dict(plan.counterfactual)["mode"] != "off"], *plan.lever_overrides()]
 
 
 def is_trained(run_dir: Path) -> bool:
