@@ -225,6 +225,10 @@ def test_reproduce_gives_the_stability_levers_to_every_run_and_names_them_in_its
     cfg.pop("defaults")
     cfg.update(out=str(tmp_path), budget="smoke", variants=["egreedy"])
     off = make_plan(cfg)
+    from crowdrl.reproduction.plan import LEVERS_OFF
+    from crowdrl.training.config import LEVER_KEYS, TrainConfig
+
+    assert LEVERS_OFF == {key: getattr(TrainConfig, key) for key in LEVER_KEYS}  # reproduce's levers are train's
     assert not any(o.startswith("train.") and "counterfactual" not in o and "test_episodes" not in o
                    for o in run_overrides(off, off.methods[0]))  # at the defaults: the runs' overrides as before
     assert off.manifest()["levers"] == {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None,

@@ -178,6 +178,11 @@ class TrainConfig:
     q_layer_norm: bool = False
 
 
+# train's stability levers (each off at its TrainConfig default): read by the fingerprint (left out at their
+# defaults, so folders made before them keep theirs) and given to every run of a reproduction
+LEVER_KEYS = ("target_tau", "huber_delta", "grad_clip_norm", "lr_end", "q_layer_norm")
+
+
 @dataclass
 class PlanningConfig:
     """SG-D3QN's online planning (``docs/mdp.md``, "Online planning"): act by re-scoring the top
