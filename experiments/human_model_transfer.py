@@ -6,6 +6,8 @@ the robot, ``social_force`` blind and seeing the robot, ``linear`` (which ignore
 changes nothing, so it has one cell), ``mixed`` (a mixed crowd, blind: ``social_force_share`` and ``linear_share``
 0.3 each, ORCA the rest; its ``eval.*_share`` keys are ``evaluate.py``'s). Agents, one group each, over seeds:
 
+* ``pretrained-polyak``: ``pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{0,1,2}`` (the
+  full learner, counterfactual experience with Polyak targets, the best agents crowdrl ships), zero-shot likewise;
 * ``pretrained``: ``pretrained/sgd3qn-planning-egreedy-episodes-s{0,1,2}`` (trained on blind ORCA at the
   episodes budget), zero-shot on every other cell;
 * ``orca-robot``: the ORCA robot (deterministic: one evaluation per cell);
@@ -56,7 +58,10 @@ TRAINED = {  # group -> the training cell
     "trained-orca-visible": "orca-visible",
     "trained-social_force": "social_force",
 }
-PRETRAINED = "pretrained/sgd3qn-planning-egreedy-episodes-s{seed}"
+PRETRAINED = {  # group -> the agents' folders
+    "pretrained": "pretrained/sgd3qn-planning-egreedy-episodes-s{seed}",
+    "pretrained-polyak": "pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{seed}",
+}
 TRAIN_BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
               "train.test_episodes=100"]  # the test here is evaluate.py's on every cell
 
@@ -109,8 +114,8 @@ def agents(out: Path, groups: list[str], seeds: list[int]) -> dict[str, dict[str
     for group in groups:
         if group == "orca-robot":
             table[group] = {"orca-robot": None}
-        elif group == "pretrained":
-            table[group] = {f"pretrained-s{s}": str(ROOT / PRETRAINED.format(seed=s)) for s in seeds}
+        elif group in PRETRAINED:
+            table[group] = {f"{group}-s{s}": str(ROOT / PRETRAINED[group].format(seed=s)) for s in seeds}
         else:
             table[group] = {f"{group}-s{s}": str(out / "runs" / f"{group}-s{s}") for s in seeds}
     return table
@@ -172,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--jobs: must be >= 1, got {args.jobs}")
     if args.episodes < 1:
         ap.error(f"--episodes: must be >= 1, got {args.episodes}")
-    groups = ["pretrained", "orca-robot", *(args.trained if args.train else [])]
+    groups = [*PRETRAINED, "orca-robot", *(args.trained if args.train else [])]
     table = agents(args.out, groups, args.seeds)
     failed: list[str] = []
     if not args.table_only:
