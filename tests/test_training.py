@@ -286,7 +286,8 @@ def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
     assert proc.poll() is None, "the run ended before it could be killed; make it longer"
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    killed_at = load_checkpoint(ckpt)["counters"]["frames"]
+    stored = load_checkpoint(ckpt)["counters"]
+    killed_at = stored["frames"]
     before = [r for r in _rows(run_dir) if r["frames"] <= killed_at]
     assert json.loads((run_dir / "status.json").read_text())["state"] == "running"
 
@@ -305,6 +306,11 @@ def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
     frames = [r["frames"] for r in after if r["kind"] == "val"]
     assert frames == sorted(set(frames)), "no duplicated validation rows after the resume"
     assert not (tmp_path / "scratch").exists(), "a resume must not leave an empty run folder behind"
+    # the timers count the whole run: the seconds before the kill (kept in the checkpoint) and after it
+    assert stored["update_s"] > 0 and stored["collect_s"] > 0
+    assert status["timers_s"]["update"] > stored["update_s"] and status["timers_s"]["collect"] > stored["collect_s"]
+    resumed = [r for r in after if r["kind"] == "train" and r["frames"] > killed_at]
+    assert resumed and all(r["time/update_s"] > stored["update_s"] for r in resumed)
 
 
 def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):

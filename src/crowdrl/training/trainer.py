@@ -38,6 +38,9 @@ from crowdrl.training.scalars import ScalarLog, WandbMirror
 from crowdrl.training.variants import make_network, replay_context
 
 
+TIMER_COUNTERS = ("collect_s", "update_s", "validate_s")
+
+
 class NonFiniteError(FloatingPointError):
     """Training produced a non-finite loss or non-finite weights: the run fails, it is never tested."""
 
@@ -53,11 +56,18 @@ class Counters:
     best_frames: int = -1
     last_val: int = 0
     last_checkpoint: int = 0
+    # seconds spent collecting, updating and validating up to the checkpoint, so that a resumed run's
+    # timers (scalars' time/*_s, status.json's timers_s) count the whole run
+    collect_s: float = 0.0
+    update_s: float = 0.0
+    validate_s: float = 0.0
 
     @classmethod
     def from_dict(cls, data: dict) -> "Counters":
-        """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter."""
+        """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter (the timers,
+        added later, are 0 in a checkpoint without them)."""
         names = {f.name for f in fields(cls)}
+        data = {**dict.fromkeys(TIMER_COUNTERS, 0.0), **data}
         if set(data) != names:
             raise ValueError(f"its counters differ from this code's: missing {sorted(names - set(data))}, "
                              f"unknown {sorted(set(data) - names)}")
@@ -232,15 +242,15 @@ class Trainer:
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
         self.strategy.schedule(c.frames)  # a resumed run acts with the schedules of its frame count, not their start
         self.set_learning_rate()
+        timers = {"collect": c.collect_s, "update": c.update_s, "validate": c.validate_s}  # a resumed run's so far
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
-            summary = self._summary({"collect": 0.0, "update": 0.0, "validate": 0.0})
+            summary = self._summary(timers)
             self.write_status("trained", **summary)
             return summary
         collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
         if resume_data:  # the collector's set-up may draw random numbers: the stream continues from here
             self._set_rng(resume_data)
         bar = _progress(run.logger.progress_bar, t.total_frames, c.frames)
-        timers = {"collect": 0.0, "update": 0.0, "validate": 0.0}
         recent = self._pending_episodes  # (event, return, steps, goal distance) of finished episodes not yet logged
         try:
             tick = time.perf_counter()
@@ -268,6 +278,7 @@ class Trainer:
                 if bar is not None:
                     bar.update(frames)
                     bar.set_postfix(**self.strategy.progress(), episodes=c.episodes, best_val_score=f"{c.best_val:.3f}")
+                c.collect_s, c.update_s, c.validate_s = timers["collect"], timers["update"], timers["validate"]
                 if c.frames - c.last_checkpoint >= t.checkpoint_every_frames or c.frames >= t.total_frames:
                     c.last_checkpoint = c.frames
                     self.save("last.pt")
