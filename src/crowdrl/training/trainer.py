@@ -62,6 +62,10 @@ class Counters:
     update_s: float = 0.0
     validate_s: float = 0.0
 
+    def timers(self) -> dict[str, float]:
+        """The seconds spent so far as ``{"collect": ..., "update": ..., "validate": ...}``."""
+        return {name.removesuffix("_s"): getattr(self, name) for name in TIMER_COUNTERS}
+
     @classmethod
     def from_dict(cls, data: dict) -> "Counters":
         """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter (the timers,
@@ -242,9 +246,8 @@ class Trainer:
         self.write_status("running", resumed_from=c.frames if resume_data else None, dropped_rows=dropped)
         self.strategy.schedule(c.frames)  # a resumed run acts with the schedules of its frame count, not their start
         self.set_learning_rate()
-        timers = {"collect": c.collect_s, "update": c.update_s, "validate": c.validate_s}  # a resumed run's so far
         if c.frames >= t.total_frames:  # killed after training, e.g. during the test: nothing left to train
-            summary = self._summary(timers)
+            summary = self._summary()
             self.write_status("trained", **summary)
             return summary
         collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
@@ -255,7 +258,7 @@ class Trainer:
         try:
             tick = time.perf_counter()
             for batch in collector:
-                timers["collect"] += time.perf_counter() - tick
+                c.collect_s += time.perf_counter() - tick
                 frames = batch.numel()
                 c.frames += frames
                 c.next_train_episode = self.env.base_env.next_episode
@@ -265,20 +268,19 @@ class Trainer:
                 self.buffer.extend(batch.select(*self.stored_keys))
                 tick = time.perf_counter()
                 loss_value = self._update(frames)
-                timers["update"] += time.perf_counter() - tick
+                c.update_s += time.perf_counter() - tick
                 self.strategy.before_collection(c.frames)
                 self.set_learning_rate()
                 if c.frames - c.last_val >= t.val_every_frames or c.frames >= t.total_frames:
                     tick = time.perf_counter()
                     self._validate()
-                    timers["validate"] += time.perf_counter() - tick
+                    c.validate_s += time.perf_counter() - tick
                 if recent and (len(recent) >= 20 or c.frames >= t.total_frames):
-                    self._log_train(recent, loss_value, timers)
+                    self._log_train(recent, loss_value)
                     recent.clear()
                 if bar is not None:
                     bar.update(frames)
                     bar.set_postfix(**self.strategy.progress(), episodes=c.episodes, best_val_score=f"{c.best_val:.3f}")
-                c.collect_s, c.update_s, c.validate_s = timers["collect"], timers["update"], timers["validate"]
                 if c.frames - c.last_checkpoint >= t.checkpoint_every_frames or c.frames >= t.total_frames:
                     c.last_checkpoint = c.frames
                     self.save("last.pt")
@@ -293,15 +295,15 @@ class Trainer:
             collector.shutdown()
             if bar is not None:
                 bar.close()
-        summary = self._summary(timers)
+        summary = self._summary()
         self.write_status("trained", **summary)
         return summary
 
-    def _summary(self, timers: dict) -> dict[str, Any]:
+    def _summary(self) -> dict[str, Any]:
         c = self.counters
         return {"frames": c.frames, "updates": c.updates, "episodes": c.episodes,
                 "best_val_score": c.best_val,  # validation success + 1e-3 * return
-                "best_frames": c.best_frames, "timers_s": timers}
+                "best_frames": c.best_frames, "timers_s": c.timers()}
 
     def _update(self, frames: int) -> float:
         t, c = self.run.train, self.counters
@@ -389,7 +391,7 @@ class Trainer:
         self.emit(row)
         return metrics
 
-    def _log_train(self, episodes: list[tuple[int, float, int, float]], loss_value: float, timers: dict) -> None:
+    def _log_train(self, episodes: list[tuple[int, float, int, float]], loss_value: float) -> None:
         c = self.counters
         n = len(episodes)
         events = [e for e, *_ in episodes]
@@ -410,7 +412,7 @@ class Trainer:
             **{f"train/{k}": v for k, v in self.learner_scalars.items()},
             **{f"train/loss_{name}": sum(v) / len(v) for name, v in self._part_losses.items() if v},
             **{f"train/{k}": v for k, v in self.update_part.scalars().items()},
-            **{f"time/{k}_s": v for k, v in timers.items()},
+            **{f"time/{k}_s": v for k, v in self.counters.timers().items()},
         })
         self._part_losses.clear()
 
