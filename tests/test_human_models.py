@@ -222,6 +222,27 @@ def test_a_pretrained_agent_is_evaluated_among_other_humans():
     assert linear["min_separation"] != plain["min_separation"]
 
 
+def test_a_social_force_agent_is_refused_among_obstacles_naming_the_keys(tmp_path):
+    """A checkpoint trained among social-force humans, evaluated in an obstacle scenario where that model does not
+    run, is refused naming ``env=`` and the way out (``eval.human_model``); with ORCA humans it runs there."""
+    from crowdrl.training.checkpoint import config_fingerprint, load_checkpoint, save_checkpoint
+    from crowdrl.training.compat import stored_config
+    from crowdrl.training.config import to_dict
+    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.training.validation import validate
+
+    data = load_checkpoint(ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0" / "best.pt")
+    config = {**data["config"], "env": {**data["config"]["env"], "human_model": "social_force"}}
+    payload = {k: v for k, v in data.items() if k not in ("format", "fingerprint")} | {"config": config}
+    save_checkpoint(tmp_path / "best.pt", payload,
+                    config_fingerprint(to_dict(validate(stored_config(config), resources=False))))
+    with pytest.raises(ValueError, match=r"^env=corridor: .*env.human_model=social_force.*eval.human_model="):
+        evaluate_spec(checkpoint=tmp_path / "best.pt", scenario="corridor", episodes=2, batch=2)
+    record, _ = evaluate_spec(checkpoint=tmp_path / "best.pt", scenario="corridor", episodes=2, batch=2,
+                              human_model="orca")
+    assert (record["scenario"], record["human_model"]) == ("corridor", "orca")
+
+
 def test_train_py_refuses_a_bad_humans_key_naming_it_and_writes_nothing(tmp_path):
     proc = _cli("train.py", "preset=smoke", "env.human_model=helbing", f"hydra.run.dir={tmp_path / 'r'}")
     assert proc.returncode != 0 and "env.human_model" in proc.stderr and "Traceback" not in proc.stderr

@@ -240,10 +240,17 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
+    trained = {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
     if humans:
-        _eval_crowd(scenario or run.env.scenario, {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
-                    | humans)
+        _eval_crowd(scenario or run.env.scenario, trained | humans)
         run = replace(run, env=replace(run.env, **humans))
+    elif scenario is not None:  # the checkpoint's own humans in another scenario
+        try:
+            CrowdConfig(scenario=scenario, **trained)
+        except ValueError as exc:
+            raise ValueError(f"env={scenario}: the checkpoint's humans (trained with env.human_model="
+                             f"{run.env.human_model}) cannot run there: {exc}; evaluate it there with "
+                             "other humans: eval.human_model=<model>") from None
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
