@@ -165,12 +165,17 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
 BASELINES = ("orca",)
 
 
-def _eval_crowd(scenario: str, humans: dict[str, Any]) -> CrowdConfig:
-    """The evaluation's crowd constants with the humans' keys of ``eval.*``, refused naming the key."""
+def _eval_crowd(scenario: str, humans: dict[str, Any], *, given: bool = True) -> CrowdConfig:
+    """The evaluation's crowd constants with the humans' keys of ``eval.*`` (``given``) or a checkpoint's own
+    humans (not ``given``: then ``scenario`` is the ``env=`` asked for), refused naming the key to change."""
     try:
         return CrowdConfig(scenario=scenario, **humans)
     except ValueError as exc:
-        raise ValueError(f"eval.{exc}") from None
+        if given:
+            raise ValueError(f"eval.{exc}") from None
+        raise ValueError(f"env={scenario}: the checkpoint's humans (trained with env.human_model={humans['human_model']}"
+                         f") cannot run there: {exc}; evaluate it there with other humans: eval.human_model=<model>"
+                         ) from None
 
 
 def _humans_shown(humans: dict[str, Any]) -> dict[str, Any]:
@@ -240,17 +245,11 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
-    trained = {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
+    if humans or scenario is not None:  # the checkpoint's humans, with those given, in the scenario asked for
+        trained = {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
+        _eval_crowd(scenario or run.env.scenario, trained | humans, given=bool(humans))
     if humans:
-        _eval_crowd(scenario or run.env.scenario, trained | humans)
         run = replace(run, env=replace(run.env, **humans))
-    elif scenario is not None:  # the checkpoint's own humans in another scenario
-        try:
-            CrowdConfig(scenario=scenario, **trained)
-        except ValueError as exc:
-            raise ValueError(f"env={scenario}: the checkpoint's humans (trained with env.human_model="
-                             f"{run.env.human_model}) cannot run there: {exc}; evaluate it there with "
-                             "other humans: eval.human_model=<model>") from None
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
