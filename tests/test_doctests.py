@@ -17,6 +17,7 @@ DOCUMENTED = {
     "crowdrl.exploration.intrinsic": "IntrinsicRewardTransform",
     "crowdrl.exploration.re3": "RE3",
     "crowdrl.policies.planning": "OnlinePlanner",
+    "crowdrl.sim.oracle": "beam_search",
     "crowdrl.schema": "read_typed",
     "crowdrl.sim.lidar": "lidar_scan",
     "crowdrl.tables": "markdown_table",

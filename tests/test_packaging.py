@@ -20,7 +20,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = {"crowdrl-train": "crowdrl.cli.train:main", "crowdrl-evaluate": "crowdrl.cli.evaluate:main",
            "crowdrl-reproduce": "crowdrl.cli.reproduce:main", "crowdrl-demo": "crowdrl.cli.demo:main",
-           "crowdrl-export": "crowdrl.cli.export:main"}
+           "crowdrl-export": "crowdrl.cli.export:main", "crowdrl-ceiling": "crowdrl.cli.ceiling:main"}
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@
         eval.social_force_share=0.3 eval.linear_share=0.3
     python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.ceiling=results/ceiling/circle.json  # gap to it
 
 Prints a Markdown table and writes ``eval.json`` / ``eval.csv`` (and a PNG and GIF of
 ``eval.record_episode``) into its Hydra run folder, whose path it prints. The same cases give the
@@ -111,7 +112,8 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
                                      episodes=e.episodes, num_humans=e.num_humans, batch=e.batch,
                                      record_episode=e.record_episode, device=c.device,
                                      human_model=e.human_model, robot_visible=e.robot_visible,
-                                     social_force_share=e.social_force_share, linear_share=e.linear_share)
+                                     social_force_share=e.social_force_share, linear_share=e.linear_share,
+                                     ceiling=e.ceiling)
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 
@@ -127,6 +129,10 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
         animate_trajectory(traj, out / f"{name}.gif")
     print(f"{record['episodes']} {record['scenario']} test cases, test seed {record['seed']}")
     print(markdown_table([record]))
+    if "avoidable_failures" in record:
+        print(f"ceiling {record['ceiling_success']:.3f}: avoidable failures {record['avoidable_failures']}, unavoidable "
+              f"{record['unavoidable_failures']}, unknown {record['unknown_failures']}; time over the ceiling "
+              f"{record['time_over_ceiling']:.2f} s on the {record['both_solved']} cases both solve")
     print(f"eval folder: {out.resolve()}")
     return record
 

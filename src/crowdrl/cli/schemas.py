@@ -32,6 +32,9 @@ class EvalConfig:
     linear_share: Optional[float] = None
     batch: int = EVAL_BATCH  # episodes stepped at once (results do not depend on it)
     record_episode: Optional[int] = 0  # PNG + GIF of this test case (null: none)
+    # a ceiling file of the same cases (experiments/ceiling.py): adds avoidable / unavoidable failures and the time
+    # over the ceiling to the record
+    ceiling: Optional[str] = None
 
 
 @dataclass
@@ -68,4 +71,23 @@ class ExportConfig:
     overwrite: bool = False  # replace an existing `out` file (refused otherwise)
 
 
-__all__ = ["EvalConfig", "EvaluateConfig", "EvaluateEnvConfig", "ExportConfig"]
+@dataclass
+class CeilingConfig:
+    """``ceiling``'s config (:mod:`crowdrl.cli.ceiling`): the stream, the search's settings, the file written.
+    ``env`` is the ``env`` group (the crowd; ``robot_visible`` must be false)."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    split: str = "test"  # train | val | test
+    seed: int = 0  # the stream's seed
+    cases: int = 1000  # cases 0 .. cases-1
+    widths: list[int] = field(default_factory=lambda: [64, 512])  # beam widths, each on the cases still unsolved
+    cell: float = 0.125  # m, the relaxed time grid's cell (the beam's ranking)
+    horizon: int = 3  # steps of the exhaustive search that proves a case infeasible (3 = 0.75 s)
+    chunk: int = 50  # cases searched at once
+    replay: bool = True  # step every solved path through CrowdNavEnv and refuse the file on a disagreement
+    out: Optional[str] = None  # the JSON to write (default: ceiling-<scenario>-<split>-seed<seed>-<cases>.json)
+    overwrite: bool = False  # replace an existing `out` file (refused otherwise)
+    threads: int = 1
+
+
+__all__ = ["CeilingConfig", "EvalConfig", "EvaluateConfig", "EvaluateEnvConfig", "ExportConfig"]

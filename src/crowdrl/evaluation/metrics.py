@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import Tensor
@@ -44,9 +44,14 @@ class EpisodeMetrics:
     average_return: float
     discomfort_frequency: float  # steps with a human within the discomfort distance / all steps
     discomfort_min_separation: float  # mean min separation over those steps (nan if none)
+    # per episode, in episode order: the final event code and the length in steps (what a ceiling is compared
+    # with, crowdrl.evaluation.ceiling); empty for metrics read back from a record
+    events: tuple[int, ...] = field(default=(), repr=False, compare=False)
+    lengths: tuple[int, ...] = field(default=(), repr=False, compare=False)
 
     def as_dict(self) -> dict[str, float]:
-        return asdict(self)
+        """The aggregate metrics (not the per-episode ``events`` and ``lengths``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("events", "lengths")}
 
     def summary(self) -> str:
         return (
@@ -94,4 +99,6 @@ def episode_metrics(
         average_return=float(returns.mean()),
         discomfort_frequency=n_disc / max(total_steps, 1),
         discomfort_min_separation=float(discomfort_separation_sum.double().sum()) / n_disc if n_disc else math.nan,
+        events=tuple(events.tolist()),
+        lengths=tuple(lengths.tolist()),
     )

@@ -135,7 +135,6 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     Raises ``ValueError`` naming the argument for NaN or infinite ``robot_velocity`` or
     ``robot_heading`` (and, from the ORCA solver, for a non-finite humans' state).
     """
-    dt = cfg.time_step
     B = state.batch_size
     if robot_velocity.shape != (B, 2):
         raise ValueError(f"robot_velocity must be shaped [{B}, 2], got {tuple(robot_velocity.shape)}")
@@ -167,16 +166,30 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
                          check_vel, human_mask, state.obstacles, state.obstacle_mask)
     collided, reached, reward = judged.collided, judged.reached, judged.reward
     min_sep, discomfort = judged.min_separation, judged.discomfort_count
-    robot_pos = state.robot_position + robot_velocity * dt
-    human_pos = state.human_position + human_vel * dt
-
-    step_count = state.step_count + 1
+    moved = advance(cfg, state, robot_velocity, robot_heading, human_vel)
+    step_count = moved.step_count
     terminated = collided | reached
     truncated = ~terminated & (step_count >= cfg.max_steps)
     event = torch.where(
         collided, COLLISION, torch.where(reached, SUCCESS, torch.where(truncated, TIMEOUT, RUNNING))
     )
+    result = StepResult(reward, terminated, truncated, event, min_sep, discomfort, lp_infeasible,
+                        judged.obstacle_collision)
+    return moved, result
 
+
+def advance(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_heading: Tensor,
+            human_velocity: Tensor) -> CrowdState:
+    """The state after a step whose velocities are known: everyone moves (``p + v·Δt``), the robot
+    takes ``robot_heading`` (wrapped by the caller), and non-stop humans that stayed near their goal
+    long enough get a new goal and stand still (:func:`~crowdrl.sim.scenarios.new_human_goals`).
+
+    The one transition :func:`step` makes after the humans' velocities; a search that steps many
+    robot actions against one crowd (:mod:`crowdrl.sim.oracle`) calls it too. The robot enters
+    only through the new goals, which keep clear of its new position."""
+    dt = cfg.time_step
+    human_mask = state.human_mask if cfg.variable_crowd else None
+    human_pos = state.human_position + human_velocity * dt
     # 5. non-stop humans: after enough steps near the goal, a new goal and a standstill
     near_goal = torch.linalg.vector_norm(human_pos - state.human_goal, dim=-1) < cfg.human_radius
     if human_mask is not None:
@@ -184,23 +197,21 @@ def step(cfg: CrowdConfig, state: CrowdState, robot_velocity: Tensor, robot_head
     goal_steps = state.human_goal_steps + near_goal.long()
     needs_goal = goal_steps >= cfg.goal_steps_before_new_goal
     moved = state.replace(
-        robot_position=robot_pos,
+        robot_position=state.robot_position + robot_velocity * dt,
         robot_velocity=robot_velocity,
         robot_heading=robot_heading,
         human_position=human_pos,
-        human_velocity=human_vel,
+        human_velocity=human_velocity,
         human_goal_steps=goal_steps,
-        step_count=step_count,
+        step_count=state.step_count + 1,
     )
     if bool(needs_goal.any()):
         moved = moved.replace(
             human_goal=new_human_goals(cfg, moved, needs_goal),
-            human_velocity=torch.where(needs_goal.unsqueeze(-1), 0.0, human_vel),
+            human_velocity=torch.where(needs_goal.unsqueeze(-1), 0.0, human_velocity),
             human_goal_steps=torch.where(needs_goal, 0, goal_steps),
         )
-    result = StepResult(reward, terminated, truncated, event, min_sep, discomfort, lp_infeasible,
-                        judged.obstacle_collision)
-    return moved, result
+    return moved
 
 
 def observe(cfg: CrowdConfig, state: CrowdState) -> tuple[Tensor, Tensor]:

@@ -16,7 +16,7 @@ from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
 from crowdrl.training.config import EVAL_BATCH, RunConfig, to_dict
-from crowdrl.training.factories import make_actor, make_env
+from crowdrl.training.factories import crowd_config, make_actor, make_env
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
 
@@ -178,6 +178,29 @@ def _eval_crowd(scenario: str, humans: dict[str, Any], *, given: bool = True) ->
                          ) from None
 
 
+def _read_ceiling(path: Path | str | None, cfg: CrowdConfig, seed: int, episodes: int):
+    """The ceiling file ``path`` if given, checked to label test cases ``0 .. episodes-1`` of ``seed`` under ``cfg``."""
+    if path is None:
+        return None
+    from crowdrl.evaluation.ceiling import check_stream, read_ceiling
+
+    try:
+        labels = read_ceiling(path)
+        check_stream(labels, cfg, split="test", seed=seed, cases=episodes)
+    except ValueError as exc:
+        raise ValueError(f"eval.ceiling: {exc}") from None
+    return labels
+
+
+def _gap_fields(labels, path: Path | str | None, metrics) -> dict[str, Any]:
+    """The record's gap to the ceiling (none without one)."""
+    if labels is None:
+        return {}
+    from crowdrl.evaluation.ceiling import gap
+
+    return {**gap(labels, metrics.events, metrics.lengths), "ceiling": str(path)}
+
+
 def _humans_shown(humans: dict[str, Any]) -> dict[str, Any]:
     """The humans' keys an ``eval.json`` record shows: the model and visibility, and a mixed crowd's shares."""
     shown = {"human_model": humans["human_model"], "robot_visible": humans["robot_visible"]}
@@ -190,14 +213,17 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                   seed: int = TEST_SEED, episodes: int = 1000, num_humans: int | None = None, batch: int = EVAL_BATCH,
                   record_episode: int | None = None, device: str = "cpu", human_model: str | None = None,
                   robot_visible: bool | None = None, social_force_share: float | None = None,
-                  linear_share: float | None = None) -> tuple[dict[str, Any], Trajectory | None]:
+                  linear_share: float | None = None, ceiling: Path | str | None = None
+                  ) -> tuple[dict[str, Any], Trajectory | None]:
     """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
     test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
     recorded trajectory. ``human_model``/``robot_visible`` (``None``: the checkpoint's; ORCA humans blind to
     the robot for a baseline) change how the humans move; ``social_force_share``/``linear_share``: a mixed
     crowd's shares (``None``: 0 where ``human_model`` is given, else the checkpoint's; a share other than 0
     needs ``human_model="mixed"``, given or the checkpoint's). Bad names and values raise ``ValueError`` naming
-    the argument."""
+    the argument. ``ceiling``: a ceiling file of the same test cases (:mod:`crowdrl.evaluation.ceiling`); the
+    record then adds the avoidable and unavoidable failures and the time over the ceiling (a file of another
+    stream is refused before anything runs, naming the mismatch)."""
     from dataclasses import replace
 
     from crowdrl.evaluation import evaluate_orca
@@ -238,10 +264,12 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     if policy == "orca":
         cfg = _eval_crowd(scenario or "circle", humans)
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
+        labels = _read_ceiling(ceiling, cfg, seed, episodes)
         metrics, traj = evaluate_orca(cfg, seed=seed, episodes=episodes, batch=batch, device=device,
                                       record_episode=record_episode)
         shown = _humans_shown(vars(cfg)) if humans else {}
-        return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca", **shown), traj
+        return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca", **shown,
+                           **_gap_fields(labels, ceiling, metrics)), traj
     run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
@@ -255,6 +283,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
                          f"states per step at {min(episodes, batch)} episodes at once, ~{planner / 2**30:,.1f} GiB, more "
                          f"than the {free / 2**30:,.1f} GiB of memory available; lower eval.batch")
+    labels = _read_ceiling(ceiling, crowd_config(run, scenario=scenario, num_humans=num_humans), seed, episodes)
     net.to(device)
     predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
     if predictor is not None:
@@ -266,5 +295,5 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                          + ("+planning" if run.planning.enabled else ""),
                          checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed,
-                         **(_humans_shown(vars(run.env)) if humans else {}))
+                         **(_humans_shown(vars(run.env)) if humans else {}), **_gap_fields(labels, ceiling, metrics))
     return record, traj
