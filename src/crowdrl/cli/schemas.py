@@ -80,7 +80,7 @@ class CeilingConfig:
     split: str = "test"  # train | val | test
     seed: int = 0  # the stream's seed
     cases: int = 1000  # cases 0 .. cases-1
-    widths: list[int] = field(default_factory=lambda: [64, 512])  # beam widths, each on the cases still unsolved
+    widths: list[int] = field(default_factory=lambda: [64, 512, 2048])  # beam widths, each on the cases still unsolved
     cell: float = 0.125  # m, the relaxed time grid's cell (the beam's ranking)
     horizon: int = 3  # steps of the exhaustive search that proves a case infeasible (3 = 0.75 s)
     chunk: int = 50  # cases searched at once

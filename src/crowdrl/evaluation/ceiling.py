@@ -38,7 +38,7 @@ from crowdrl.sim.oracle import INFEASIBLE, LABELS, SOLVED, UNKNOWN, beam_search,
 from crowdrl.sim.scenarios import initial_states
 
 FORMAT = 1
-DEFAULT_WIDTHS = (64, 512)
+DEFAULT_WIDTHS = (64, 512, 2048)
 DEFAULT_CELL = 0.125
 DEFAULT_HORIZON = 3  # steps of the exhaustive proof (0.75 s): 81**2 nodes a case at its last depth
 # config fields that change no case: the backend (the same ORCA), what the robot observes, and its kinematics (the
