@@ -24,6 +24,11 @@ one step ahead).
   in every predicted state.
 * A predicted collision or goal ends the look-ahead (``end̂``): such a step is scored by its
   reward and ``Q(s, a)`` only, as a terminal transition has no successor value in the TD target.
+* Safety check (``safety_horizon`` H > 0; off by default): an action is *unsafe* when, taken now and its
+  velocity then held for H - 1 more steps, the robot collides with the predicted crowd (the predictor
+  chained H steps) or an observed wall in one of the H steps (the simulator's ``step_reward``). The planner
+  acts by its best-scored safe candidate; with none, by the safe action of highest Q; with no safe action
+  at all, as without the check.
 
 Everything is batched over environments and candidates (``[B·width^k, ...]`` tensors at depth
 ``k``); the only Python loop is the recursion over depth. Q is the run's network, called as the
@@ -42,6 +47,7 @@ from torch import Tensor, nn
 
 from crowdrl.envs.robot_centric import entity_tokens, obstacles_centric, robot_centric
 from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.crowd import step_reward
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
 from crowdrl.sim.lookahead import look_ahead
 
@@ -49,7 +55,7 @@ from crowdrl.sim.lookahead import look_ahead
 class Plan(NamedTuple):
     """What the planner decided for states ``[*]``."""
 
-    action: Tensor  # [*] int64: the best-scored candidate
+    action: Tensor  # [*] int64: the best-scored candidate (with the safety check: the best safe one, see above)
     action_value: Tensor  # [*, A]: Q(s, ·)
     candidates: Tensor  # [*, width] int64: the top-width actions by Q, best first
     scores: Tensor  # [*, width]: score_depth(s, candidate)
@@ -64,6 +70,7 @@ class OnlinePlanner(TensorDictModuleBase):
         config: the simulator's constants (time step, radii, reward); unicycle kinematics only.
         gamma: the discount per step γ̄.
         depth, width: look-ahead depth ``>= 1`` and candidates per state ``1..A``.
+        safety_horizon: steps of the safety check (0: off; see the module docstring).
         robot_key, humans_key: the world-frame observation keys; ``mask_key``: the crowd mask,
             read when the tensordict has it (``None``: never).
         entities: ``net`` reads entity tokens (humans and obstacle edges,
@@ -100,7 +107,7 @@ class OnlinePlanner(TensorDictModuleBase):
     def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,
                  depth: int = 1, width: int = 10, robot_key: str = "robot", humans_key: str = "humans",
                  mask_key: str | None = "humans_mask", entities: bool = False,
-                 obstacles_key: str = "obstacles") -> None:
+                 obstacles_key: str = "obstacles", safety_horizon: int = 0) -> None:
         super().__init__()
         if config.robot_kinematics != "unicycle":
             raise ValueError(f"planning needs the unicycle's discrete actions, got {config.robot_kinematics!r}")
@@ -110,6 +117,9 @@ class OnlinePlanner(TensorDictModuleBase):
             raise ValueError(f"width must be an integer in 1..{NUM_ACTIONS}, got {width!r}")
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        if isinstance(safety_horizon, bool) or int(safety_horizon) != safety_horizon or not 0 <= safety_horizon <= 20:
+            raise ValueError(f"safety_horizon must be an integer in 0..20 (steps; 0: off), got {safety_horizon!r}")
+        self.safety_horizon = int(safety_horizon)
         self.net = net
         self.predictor = predictor
         self.config = config
@@ -143,12 +153,7 @@ class OnlinePlanner(TensorDictModuleBase):
         q_top, cand = q.topk(w, dim=-1)  # [M, w], best first
         # the crowd after the step: one prediction per state (the humans do not see the robot)
         humans_next = self.predictor(robot, humans, humans_mask)  # [M, N, 5]
-        walls = wall_mask = None
-        if obstacles is not None:  # the observed edges as wall polygons [M, K, 2, 2], for the sweep
-            K = obstacles.shape[1]
-            walls = obstacles.reshape(M, K, 2, 2)
-            wall_mask = (torch.ones(M, K, dtype=torch.bool, device=robot.device) if obstacles_mask is None
-                         else obstacles_mask)[..., None].expand(M, K, 2)
+        walls, wall_mask = self._walls(obstacles, obstacles_mask)  # the observed edges, for the sweep
         # the robot after each candidate and the step's reward: the simulator's one-step model
         robot_next, judged = look_ahead(cfg, self.table, robot, humans, humans_next, cand, humans_mask, walls, wall_mask)
         mask_w = None if humans_mask is None else humans_mask[:, None].expand(M, w, N)
@@ -171,6 +176,45 @@ class OnlinePlanner(TensorDictModuleBase):
         value = torch.where(ended, 0.0, value.reshape(M, w))
         return 0.5 * (judged.reward + self.gamma * value + q_top), cand
 
+    @staticmethod
+    def _walls(obstacles: Tensor | None, obstacles_mask: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+        """The observed edges ``[M, K, 4]`` as 2-vertex wall polygons ``[M, K, 2, 2]`` with their mask."""
+        if obstacles is None:
+            return None, None
+        M, K = obstacles.shape[:2]
+        mask = torch.ones(M, K, dtype=torch.bool, device=obstacles.device) if obstacles_mask is None else obstacles_mask
+        return obstacles.reshape(M, K, 2, 2), mask[..., None].expand(M, K, 2)
+
+    @torch.no_grad()
+    def safe_actions(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None,
+                     obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Tensor:
+        """``[M, A]`` bool: the actions that do not collide within ``safety_horizon`` steps when taken now
+        and held (their velocity) after, against the crowd chained through the predictor and the observed walls
+        (all ``True`` when the check is off)."""
+        cfg, M, N = self.config, robot.shape[0], humans.shape[1]
+        A = self.table.shape[0]
+        if self.safety_horizon == 0:
+            return torch.ones(M, A, dtype=torch.bool, device=robot.device)
+        walls, wall_mask = self._walls(obstacles, obstacles_mask)
+        actions = torch.arange(A, device=robot.device).expand(M, A)
+        humans_next = self.predictor(robot, humans, humans_mask)
+        robot_next, judged = look_ahead(cfg, self.table, robot, humans, humans_next, actions, humans_mask, walls,
+                                        wall_mask)
+        hit, ended = judged.collided.clone(), judged.reached.clone()
+        position, velocity = robot_next[..., 0:2], robot_next[..., 2:4]
+        goal = robot[:, None, 5:7].expand(M, A, 2)
+        mask_a = None if humans_mask is None else humans_mask[:, None].expand(M, A, N)
+        for _ in range(self.safety_horizon - 1):
+            now, humans_next = humans_next, self.predictor(robot, humans_next, humans_mask)
+            vel = (now[..., 2:4] if cfg.collision_velocity == "start"
+                   else (humans_next[..., 0:2] - now[..., 0:2]) / cfg.time_step)
+            step = step_reward(cfg, position, velocity, goal, now[:, None, :, 0:2].expand(M, A, N, 2),
+                               vel[:, None].expand(M, A, N, 2), mask_a, walls, wall_mask)
+            hit |= step.collided & ~ended
+            ended |= step.reached
+            position = position + velocity * cfg.time_step
+        return ~hit
+
     @torch.no_grad()
     def plan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None,
              obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Plan:
@@ -187,6 +231,12 @@ class OnlinePlanner(TensorDictModuleBase):
         q = self.q_values(robot, humans, humans_mask, obstacles, obstacles_mask)
         scores, cand = self.scores(robot, humans, humans_mask, q, self.depth, obstacles, obstacles_mask)
         action = cand.gather(-1, scores.argmax(-1, keepdim=True)).squeeze(-1)
+        if self.safety_horizon > 0:
+            safe = self.safe_actions(robot, humans, humans_mask, obstacles, obstacles_mask)
+            safe_cand = safe.gather(-1, cand)
+            best_safe = cand.gather(-1, scores.masked_fill(~safe_cand, -torch.inf).argmax(-1, keepdim=True)).squeeze(-1)
+            safest = q.masked_fill(~safe, -torch.inf).argmax(-1)
+            action = torch.where(safe_cand.any(-1), best_safe, torch.where(safe.any(-1), safest, action))
         return Plan(action.reshape(lead), q.reshape(*lead, -1), cand.reshape(*lead, self.width),
                     scores.reshape(*lead, self.width))
 

@@ -87,7 +87,8 @@ def fingerprinted(config: dict) -> dict[str, Any]:
         train.pop(k, None)
     keep["train"] = train
     if config.get("planning", {}).get("enabled"):  # planning off: the fingerprint of a run without the key
-        keep["planning"] = config["planning"]
+        # the safety check off: as before the key
+        keep["planning"] = {k: v for k, v in config["planning"].items() if not (k == "safety_horizon" and v == 0)}
     return keep
 
 

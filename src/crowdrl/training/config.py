@@ -194,6 +194,9 @@ class PlanningConfig:
     width: int = 10
     predictor: str = "learned"
     lr: float = 1e-3
+    # a run-time safety check (crowdrl.policies.planning): act by no action that collides with the predicted crowd
+    # within this many steps when held; 0: off (as upstream, and every run recorded before the key)
+    safety_horizon: int = 0
 
 
 @dataclass

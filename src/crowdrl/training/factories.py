@@ -114,7 +114,8 @@ def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
         raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
     p = run.planning
     return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width,
-                         mask_key=MASK_KEY if crowd.variable_crowd else None, entities=sees_obstacles(run))
+                         mask_key=MASK_KEY if crowd.variable_crowd else None, entities=sees_obstacles(run),
+                         safety_horizon=p.safety_horizon)
 
 
 def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | None:

@@ -113,6 +113,9 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
     one_of(p.predictor, "planning.predictor", PREDICTORS)
     check(p.lr > 0, "planning.lr", f"must be > 0, got {p.lr}")
+    check(0 <= p.safety_horizon <= 20, "planning.safety_horizon", f"must lie in 0..20 (steps; 0: off), got {p.safety_horizon}")
+    check(p.safety_horizon == 0 or p.enabled, "planning.safety_horizon",
+          "checks the planner's actions: needs planning.enabled=true")
     check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
     check_threads(run.threads)
     check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
