@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 from benchkit import Column, add_json_argument, emit, log
 
@@ -73,6 +74,52 @@ def hashes(folder: Path) -> dict[str, str]:
 def status(folder: Path) -> str:
     path = folder / "status.json"
     return json.loads(path.read_text())["state"] if path.exists() else "(none)"
+
+
+def nothing_overwritten(scratch: Path, done: Path, record: Callable[[str, str, str, bool], None]) -> None:
+    """Issue 52: a command writes only into a folder it created or one carrying its own marker, never over
+    a record it did not write in this call; each refusal is one line, exit 2, everything as it was."""
+    mine = scratch / "users-table"
+    mine.mkdir()
+    (mine / "table.md").write_text("mine")
+    proc = cli("reproduce", "variants=[egreedy]", "seeds=[0]", "episodes=2", f"out={mine}")
+    record("reproduce.py out=<the user's folder with table.md>", "exit 2 naming out, table.md unchanged",
+           f"exit {proc.returncode}: {last_line(proc.stderr)}",
+           one_line_exit_2(proc, "out:", "no manifest.json") and [p.name for p in mine.iterdir()] == ["table.md"]
+           and (mine / "table.md").read_text() == "mine")
+    where = scratch / "cli-reproduce-out-empty"
+    where.mkdir()
+    proc = cli("reproduce", "variants=[egreedy]", "seeds=[0]", "episodes=2", "out=", cwd=where)
+    record("reproduce.py out=''", "exit 2 naming out, nothing written", f"exit {proc.returncode}: {last_line(proc.stderr)}",
+           one_line_exit_2(proc, "out: is empty") and not any(where.iterdir()))
+    run = scratch / "evaluated-run"
+    shutil.copytree(done, run)
+    before = hashes(run)
+    proc = cli("evaluate", f"checkpoint={run}", "eval.episodes=2", f"hydra.run.dir={run}")
+    record("evaluate.py checkpoint=<run> hydra.run.dir=<run>", "exit 2 naming the folder, its eval.json unchanged",
+           f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}",
+           one_line_exit_2(proc, "hydra.run.dir:", str(run)) and hashes(run) == before)
+    for i, manifest in enumerate(("garbage", "[]")):
+        out = scratch / f"manifest-{i}"
+        out.mkdir()
+        (out / "manifest.json").write_text(manifest)
+        proc = cli("reproduce", "variants=[egreedy]", "seeds=[0]", "episodes=2", f"out={out}")
+        record(f"reproduce.py rerun, manifest.json {manifest!r}", "exit 2 naming manifest.json",
+               f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}",
+               one_line_exit_2(proc, "manifest.json") and (out / "manifest.json").read_text() == manifest)
+    file = scratch / "a-file"
+    file.write_text("mine")
+    for name, args in (("train", [*SMOKE, f"hydra.run.dir={file}"]), ("evaluate", ["policy=orca", f"hydra.run.dir={file}"]),
+                       ("reproduce", ["variants=[egreedy]", "seeds=[0]", f"out={file}"])):
+        proc = cli(name, *args)
+        record(f"{name}.py {args[-1].split('=')[0]}=<a file>", "exit 2 naming the path, the file unchanged",
+               f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}",
+               one_line_exit_2(proc, str(file), "is a file, not a folder") and file.read_text() == "mine")
+    where = scratch / "cli-train-sweep"
+    where.mkdir()
+    proc = cli("train", "-m", *SMOKE, "seed=abc,0", cwd=where)
+    record("train.py -m seed=abc,0", "exit 2 naming seed, no sweep folder", f"exit {proc.returncode}: {last_line(proc.stderr)}",
+           one_line_exit_2(proc, "seed:") and not any(where.iterdir()))
 
 
 def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, at_frames: int) -> int:
@@ -170,6 +217,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     proc = cli("evaluate", f"checkpoint={text}", f"hydra.run.dir={scratch / 'eval-text'}")
     record("evaluate.py checkpoint=<a text file>", "exit 2, 'not a torch file'", f"exit {proc.returncode}: "
            f"{last_line(proc.stderr)}", one_line_exit_2(proc, "not a torch file") and not (scratch / "eval-text").exists())
+    nothing_overwritten(scratch, done, record)
     from omegaconf import OmegaConf
 
     humans = int(OmegaConf.load(done / "config.yaml").env.num_humans)

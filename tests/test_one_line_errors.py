@@ -209,3 +209,96 @@ def test_the_wandb_mode_follows_logger_mode_and_the_environment_wins_when_set(mo
     monkeypatch.setattr(torchrl_wandb, "WandbLogger", StubLogger)
     WandbMirror(tmp_path, {}, "crowdrl", logger_mode, None)
     assert seen["mode"] == expected
+
+
+# ----------------------------------------------------------------------------- issue 52: nothing a user owns is overwritten
+
+REPRODUCE_TINY = ["budget=smoke", "variants=[egreedy]", "seeds=[0]", "scenarios=[circle]", "episodes=2"]
+
+
+def test_reproduce_refuses_an_out_folder_it_did_not_make(monkeypatch, capsys, scratch):
+    """D4: `out=<a folder holding the user's own table.md>`: refused naming `out`, before its lock; the folder
+    is as it was (reproduce.py's own folders, with their manifest.json, still resume: tests/test_run_folders.py)."""
+    mine = scratch / "mine"
+    mine.mkdir()
+    (mine / "table.md").write_text("my table")
+    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, f"out={mine}")
+    line = one_line(err)
+    assert code == 2 and line.startswith(f"reproduce.py: out: {mine} holds files (table.md)"), line
+    assert "no reproduce.py folder (no manifest.json)" in line, line
+    assert [p.name for p in mine.iterdir()] == ["table.md"] and (mine / "table.md").read_text() == "my table"
+
+
+def test_reproduce_refuses_an_empty_out_and_writes_nothing(monkeypatch, capsys, scratch):
+    """D4b: `out=` (empty: `out=$DIR` with DIR unset) would have made the current directory the results folder."""
+    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, "out=")
+    line = one_line(err)
+    assert code == 2 and line.startswith("reproduce.py: out: is empty"), line
+    assert list(scratch.iterdir()) == []
+
+
+@pytest.mark.parametrize("manifest, words", [("garbage", "not valid JSON"), ("[]", "expected a JSON object, got list")])
+def test_reproduce_refuses_a_manifest_that_is_no_json_object_in_one_line(monkeypatch, capsys, scratch, manifest, words):
+    """D6: a rerun whose manifest.json is not the JSON object reproduce.py writes: one line naming the file."""
+    out = scratch / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text(manifest)
+    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, f"out={out}")
+    line = one_line(err)
+    assert code == 2 and line.startswith(f"reproduce.py: out: {out / 'manifest.json'}: {words}"), line
+    assert (out / "manifest.json").read_text() == manifest
+    assert sorted(p.name for p in out.iterdir()) == [".lock", "manifest.json"]  # the lock: taken before it is read
+
+
+@pytest.mark.parametrize("module, args, where", [
+    ("train", ["preset=smoke", "logger=csv", "hydra.run.dir=f"], "f is a file"),
+    ("train", ["preset=smoke", "logger=csv", "hydra.run.dir=f/run"], "f/run: f is a file"),
+    ("evaluate", ["policy=orca", "eval.episodes=2", "hydra.run.dir=f"], "f is a file"),
+    ("reproduce", [*REPRODUCE_TINY, "out=f"], "f is a file"),
+])
+def test_a_file_where_the_run_folder_should_be_is_one_line_naming_it(monkeypatch, capsys, scratch, module, args, where):
+    """D7: `hydra.run.dir=` (or reproduce.py's `out=`) an existing file, or below one: Hydra cannot make the
+    folder; one line naming the path, exit 2, the file as it was."""
+    (scratch / "f").write_text("mine")
+    code, err = run_cli(monkeypatch, capsys, module, *args)
+    line = one_line(err)
+    assert code == 2 and line.startswith(f"{module}.py: {where}, not a folder; give a new or empty folder"), line
+    assert [p.name for p in scratch.iterdir()] == ["f"] and (scratch / "f").read_text() == "mine"
+
+
+@pytest.mark.parametrize("sweep, words", [("seed=abc,0", ["train.py: seed:", "could not be converted to Integer"]),
+                                          ("train.lr=-1,0.1", ["train.py: invalid configuration: train.lr: must be > 0"])])
+def test_a_refused_sweep_leaves_no_sweep_folder(monkeypatch, capsys, scratch, sweep, words):
+    """D14: `train.py -m ... seed=abc,0`: Hydra writes the sweep folder's multirun.yaml before it composes the
+    jobs; refused (by Hydra, or by train.py's checks in the first job) before any job wrote anything, the sweep
+    leaves nothing behind."""
+    code, err = run_cli(monkeypatch, capsys, "train", "-m", "preset=smoke", "logger=csv", sweep)
+    line = one_line(err)  # Hydra's "Launching 2 jobs locally" goes to stdout
+    assert code == 2 and all(w in line for w in words), line
+    assert list(scratch.iterdir()) == []
+
+
+def test_evaluate_refuses_a_folder_that_holds_records_and_writes_into_a_new_or_empty_one(monkeypatch, capsys, scratch):
+    """D5: `evaluate.py checkpoint=R hydra.run.dir=R` (R a finished training run) would have replaced the run's
+    own test eval.json: refused naming the folder, R as it was; an empty folder is written into."""
+    import json
+
+    from crowdrl.cli.evaluate import main
+
+    run = scratch / "run"
+    run.mkdir()
+    (run / "status.json").write_text('{"state": "completed"}')
+    (run / "eval.json").write_text('{"episodes": 1000}')
+    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+                        f"hydra.run.dir={run}")
+    line = one_line(err)
+    assert code == 2 and line.startswith(f"evaluate.py: hydra.run.dir: {run} holds files (eval.json, status.json); "), line
+    assert sorted(p.name for p in run.iterdir()) == ["eval.json", "status.json"]
+    assert (run / "eval.json").read_text() == '{"episodes": 1000}'
+
+    empty = scratch / "empty"
+    empty.mkdir()
+    monkeypatch.setattr(sys, "argv", ["evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+                                      f"hydra.run.dir={empty}"])
+    main()
+    assert json.loads((empty / "eval.json").read_text())["episodes"] == 2

@@ -493,3 +493,92 @@ def test_reproduce_py_checks_every_run_and_seed_before_training(tmp_path, monkey
     with pytest.raises(reproduce.PlanError, match=r"^the egreedy runs \(.*\): train\.buffer_size: "):
         reproduce.check_runs(plan)
     assert not (tmp_path / "o").exists()
+
+
+# ----------------------------------------------------------------------------- issue 52: nothing a user owns is overwritten
+
+
+def test_reproduce_py_writes_only_into_an_out_folder_it_made(tmp_path):
+    """D4: out= a folder that holds files but no manifest.json (not made by reproduce.py) is refused naming `out`;
+    a new or empty one, one a call stopped between its lock and its manifest, and one an earlier reproduce.py
+    made (its manifest.json) are written into, the last one resumed."""
+    reproduce = _reproduce_module()
+    out = tmp_path / "out"
+    plan = _plan(reproduce, out)
+    reproduce.check_out(plan)  # missing
+    out.mkdir()
+    reproduce.check_out(plan)  # empty
+    (out / ".lock").write_text("")
+    reproduce.check_out(plan)  # stopped after its lock, before its manifest
+    (out / "table.md").write_text("the user's table")
+    with pytest.raises(reproduce.PlanError, match=r"^out: .*/out holds files \(table\.md\) but is no reproduce\.py "
+                                                  r"folder \(no manifest\.json\); give a new or empty folder$"):
+        reproduce.check_out(plan)
+    assert sorted(p.name for p in out.iterdir()) == [".lock", "table.md"]
+    made = _plan(reproduce, tmp_path / "made")
+    reproduce.check_out(made)
+    reproduce.check_manifest(made)  # what its first call writes (under its lock), then its table
+    (made.out / "table.md").write_text("an earlier call's table")
+    reproduce.check_out(made)  # reproduce.py's own: resumed
+    reproduce.check_manifest(made)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(reproduce.PlanError, match=r"^out: .*/file is a file, not a folder"):
+        reproduce.check_out(_plan(reproduce, tmp_path / "file"))
+
+
+@pytest.mark.parametrize("out", ["", "  "])
+def test_reproduce_py_refuses_an_empty_out_naming_it(out):
+    """D4b: `out=` (e.g. `out=$DIR` with DIR unset) would make the current directory the results folder."""
+    reproduce = _reproduce_module()
+    with pytest.raises(reproduce.PlanError, match=r"^out: is empty; give the folder"):
+        reproduce.make_plan({"budget": "smoke", "variants": ["egreedy"], "seeds": [0], "out": out})
+
+
+def test_check_folder_refuses_a_file_or_a_folder_without_its_marker(tmp_path):
+    """The one rule of every command that writes: a new or empty folder, or one carrying the command's marker."""
+    from crowdrl.training.run_folder import RunFolderRefused, check_folder
+
+    check_folder(tmp_path / "new")
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(RunFolderRefused, match="f is a file, not a folder"):
+        check_folder(tmp_path / "f")
+    folder = tmp_path / "d"
+    folder.mkdir()
+    check_folder(folder)
+    for i in range(7):
+        (folder / f"r{i}.json").write_text("{}")
+    with pytest.raises(RunFolderRefused, match=r"holds files \(r0\.json, r1\.json, r2\.json, r3\.json, r4\.json, \.\.\.\); "):
+        check_folder(folder)  # no markers: any file
+    with pytest.raises(RunFolderRefused, match=r"but is no thing \(no mark\)"):
+        check_folder(folder, ("mark",), kind="thing")
+    (folder / "mark").write_text("")
+    check_folder(folder, ("mark",), kind="thing")
+
+
+def test_a_sweep_is_removed_only_while_no_job_wrote_into_it(tmp_path):
+    """D14: after a failed sweep, a sweep folder this process made that holds nothing but Hydra's multirun.yaml
+    goes (with its new parents); one a job wrote into, or one that existed before, stays as it is."""
+    from omegaconf import OmegaConf
+
+    from crowdrl.training.run_folder import NewFolders, discard_refused_sweeps
+
+    callback = NewFolders()
+    (tmp_path / "multirun" / "existed").mkdir(parents=True)
+    for name in ("refused", "ran", "existed"):
+        sweep = tmp_path / "multirun" / name
+        callback.on_multirun_start(OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}}))
+        sweep.mkdir(parents=True, exist_ok=True)
+        (sweep / "multirun.yaml").write_text("hydra: {}\n")
+    (tmp_path / "multirun" / "ran" / "0-seed=0").mkdir()
+    (tmp_path / "multirun" / "ran" / "0-seed=0" / "status.json").write_text("{}")
+    discard_refused_sweeps()
+    assert sorted(p.name for p in (tmp_path / "multirun").iterdir()) == ["existed", "ran"]
+    assert (tmp_path / "multirun" / "ran" / "multirun.yaml").exists()
+    assert (tmp_path / "multirun" / "existed" / "multirun.yaml").exists()
+
+    alone = tmp_path / "alone" / "sweep"
+    callback.on_multirun_start(OmegaConf.create({"hydra": {"sweep": {"dir": str(alone)}}}))
+    alone.mkdir(parents=True)
+    (alone / "multirun.yaml").write_text("hydra: {}\n")
+    discard_refused_sweeps()
+    assert not (tmp_path / "alone").exists()  # the new parent too

@@ -14,8 +14,10 @@ directory; what the commands write (``runs/``, ``multirun/``, ``results/``) is r
 Every command fails the same way (:func:`one_line_errors` around its ``main``, :func:`hydra_command`
 for the Hydra ones): refused input, a
 Hydra or OmegaConf error (an unknown option, a value of the wrong type, a missing config), a full
-disk or a read-only or forbidden folder end it with one line ``<program>: <message>`` on stderr and
-exit status 2; Ctrl-C / SIGTERM with 130. Only a bug shows a traceback (exit 1).
+disk, a read-only or forbidden folder, or a file where the run folder should be end it with one line
+``<program>: <message>`` on stderr and exit status 2; Ctrl-C / SIGTERM with 130. Only a bug shows a
+traceback (exit 1). Each command writes only into a folder it created or one that carries its own
+marker, never over a record it did not write in this call (:func:`crowdrl.training.run_folder.check_folder`).
 
 Each Hydra command composes its config onto a typed schema registered in Hydra's ConfigStore (the
 first entry of its defaults list: ``train``: :class:`crowdrl.training.config.RunConfig`; ``evaluate``,
@@ -65,11 +67,26 @@ def exit_with_error(module: str, message: str, code: int = 2) -> NoReturn:
     raise SystemExit(code)
 
 
+def file_in_the_way(exc: OSError) -> str | None:
+    """``<path>: <file> is a file, not a folder; ...`` when a folder could not be made (EEXIST, ENOTDIR:
+    Hydra making ``hydra.run.dir`` or reproduce.py's ``out=``) because a file stands at its path or
+    above it; ``None`` for another ``OSError``."""
+    if exc.errno not in (errno.EEXIST, errno.ENOTDIR) or not exc.filename:
+        return None
+    path = Path(os.fsdecode(exc.filename))
+    file = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if file is None:
+        return None
+    where = f"{path}" if file == path else f"{path}: {file}"
+    return f"{where} is a file, not a folder; give a new or empty folder"
+
+
 def folder_error_line(exc: OSError) -> str | None:
     """``<file>: <strerror> (<ERRNO>); <what to do>`` for a full disk, a read-only or forbidden file
-    (:data:`FOLDER_ERRNOS`); ``None`` for another ``OSError``."""
+    (:data:`FOLDER_ERRNOS`), ``<path>: ... is a file, not a folder; ...`` for a file where a folder
+    must be made (:func:`file_in_the_way`); ``None`` for another ``OSError``."""
     if exc.errno not in FOLDER_ERRNOS:
-        return None
+        return file_in_the_way(exc)
     where = f"{exc.filename}: " if exc.filename else ""
     return f"{where}{exc.strerror or os.strerror(exc.errno)} ({errno.errorcode[exc.errno]}); {FOLDER_ERRNOS[exc.errno]}"
 
@@ -180,6 +197,8 @@ def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] |
     """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
     :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
     job would make Hydra print "Error executing job ..." first): the one error path of each Hydra command.
+    A sweep (``-m``) that fails before any job wrote anything leaves no sweep folder
+    (:func:`crowdrl.training.run_folder.discard_refused_sweeps`).
     ``allowed``: the keys the command reads, named when a key its typed schema lacks is refused."""
     def decorate(task: F) -> F:
         import hydra
@@ -187,6 +206,18 @@ def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] |
         from crowdrl.resources import config_dir
 
         hydra_main = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")
-        return one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(task)))
+        command = one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(task)))
+
+        @functools.wraps(task)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return command(*args, **kwargs)
+            except BaseException:  # the one line (and exit status) is out already
+                from crowdrl.training.run_folder import discard_refused_sweeps
+
+                discard_refused_sweeps()
+                raise
+
+        return run  # type: ignore[return-value]
 
     return decorate

@@ -11,7 +11,8 @@
     python experiments/evaluate.py checkpoint=runs/<folder> eval.ceiling=results/ceiling/circle.json  # gap to it
 
 Prints a Markdown table and writes ``eval.json`` / ``eval.csv`` (and a PNG and GIF of
-``eval.record_episode``) into its Hydra run folder, whose path it prints. The same cases give the
+``eval.record_episode``) into its Hydra run folder, whose path it prints: a new or empty folder
+(one that holds anything, a training run's folder among them, is refused). The same cases give the
 same numbers whatever ``eval.batch``.
 """
 
@@ -92,6 +93,18 @@ def main(cfg: DictConfig) -> dict:
         raise
 
 
+def check_eval_folder(out: Path) -> None:
+    """Refuse (``ValueError`` naming ``hydra.run.dir``) an eval folder that is a file or holds anything:
+    evaluate.py writes only into the folder Hydra made for it or an empty one, never over a record
+    (a training run's own ``eval.json``) it did not write in this call."""
+    from crowdrl.training.run_folder import RunFolderRefused, check_folder
+
+    try:
+        check_folder(out)
+    except RunFolderRefused as exc:
+        raise ValueError(f"hydra.run.dir: {exc}; evaluate.py writes only into a new or empty folder") from None
+
+
 def run_evaluation(out: Path, cfg: DictConfig) -> dict:
     """Evaluate what ``cfg`` names into the folder ``out`` (Hydra's run folder); the record."""
     import torch
@@ -105,6 +118,7 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
         c = read_settings(cfg, list(HydraConfig.get().overrides.task))
         check_device(c.device)
         check_threads(c.threads)
+        check_eval_folder(out)
         torch.set_num_threads(c.threads)
         scenario = c.env.scenario  # env=<name> selects conf/env/<name>.yaml (None: the checkpoint's)
         e = c.eval

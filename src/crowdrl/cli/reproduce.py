@@ -18,7 +18,8 @@ current directory) in ``<out>/runs/<variant>-s<seed>`` (SG-D3QN) or ``<out>/runs
 is ``<variant>`` or
 ``<encoder>+<variant>``, compared with the ε-greedy run of the same encoder.
 A rerun skips finished runs and resumes killed ones from their last checkpoint; a folder made by
-another budget, test-case count or code version is refused. Finished runs' records (not their
+another budget, test-case count or code version is refused, and so is one reproduce.py did not make
+(it holds files but no ``manifest.json``) or ``out=''``. Finished runs' records (not their
 checkpoints) are kept in git, so a clone rebuilds the table and curves without training.
 
 This module launches the runs; the plan is :mod:`crowdrl.reproduction.plan`, the table
@@ -41,8 +42,8 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.cli import exit_with_error, hydra_command
 # the plan's names are this module's too (experiments/reproduce.py and the tests use them from here)
 from crowdrl.reproduction.plan import (BUDGETS, COUNTERFACTUAL_OFF, DEFAULT_ENCODER, KEYS, LAUNCHERS,  # noqa: F401
-                                       MANIFEST_FORMAT, Method, Plan, PlanError, check_manifest, check_runs, eval_path,
-                                       has_eval, is_trained, make_plan, run_overrides)
+                                       MANIFEST_FORMAT, Method, Plan, PlanError, check_manifest, check_out, check_runs,
+                                       eval_path, has_eval, is_trained, make_plan, run_overrides)
 
 TRAIN = [sys.executable, "-m", "crowdrl.cli.train"]  # the training runs: this interpreter, crowdrl's own train
 
@@ -153,6 +154,7 @@ def reproduce(plan: Plan) -> dict[str, Any]:
     start = time.perf_counter()
     torch.set_num_threads(plan.threads)
     check_runs(plan)
+    check_out(plan)  # a folder reproduce.py did not make is refused, before the lock writes .lock into it
     lock = lock_out(plan)  # before the first write: one reproduce.py per out folder
     try:
         return _reproduce(plan, start)

@@ -17,6 +17,7 @@ CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
 LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
+OUT_MARKER = "manifest.json"  # written into out= under its lock by the first reproduce.py call: the folder is its own
 KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
 COUNTERFACTUAL_OFF = dataclasses.asdict(CounterfactualConfig())  # train.counterfactual's defaults
 LEVERS_OFF = dataclasses.asdict(LeverConfig())  # the stability levers' defaults (the paper's learner)
@@ -121,6 +122,8 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
             raise PlanError(f"{key}: must be an integer >= {low}, got {value!r}")
         return value
 
+    if not s.out.strip():  # out='' (out=$DIR with DIR unset) would write into the current directory
+        raise PlanError("out: is empty; give the folder for the table and its runs, e.g. out=results/mine")
     if s.budget not in BUDGETS:
         raise PlanError(f"budget: unknown {s.budget!r}; allowed: {', '.join(BUDGETS)}")
     if s.launcher not in LAUNCHERS:
@@ -170,12 +173,31 @@ def check_runs(plan: Plan) -> None:
 
 
 
+def check_out(plan: Plan) -> None:
+    """Refuse ``out=`` a file, or a folder that holds files but no ``manifest.json`` (one reproduce.py
+    did not make: its ``table.md`` and figures would be written over); a new or empty folder, or one
+    an earlier reproduce.py made (resumed), is fine. Before anything is written, the lock included."""
+    from crowdrl.training.run_folder import RunFolderRefused, check_folder
+
+    try:  # the lock comes before the manifest: a folder holding nothing but .lock is a call stopped in between
+        check_folder(plan.out, (OUT_MARKER,), kind="reproduce.py folder", ignore=(".lock",))
+    except RunFolderRefused as exc:
+        raise PlanError(f"out: {exc}") from None
+
+
 def check_manifest(plan: Plan) -> None:
-    """Refuse to mix results of another budget, test-case count or code version in one folder."""
-    path = plan.out / "manifest.json"
+    """Refuse to mix results of another budget, test-case count or code version in one folder, and a
+    ``manifest.json`` that is not the JSON object reproduce.py writes (naming the file)."""
+    from crowdrl.evaluation.report import RecordError, read_json_record
+
+    path = plan.out / OUT_MARKER
     want = plan.manifest()
     if path.exists():
-        have = json.loads(path.read_text())
+        try:
+            have = read_json_record(path)
+        except RecordError as exc:
+            raise PlanError(f"out: {exc}; restore the manifest.json reproduce.py wrote, or pass a fresh "
+                            f"out=<folder>") from None
         have.setdefault("planning", False)  # folders made before the key trained without planning
         have.setdefault("counterfactual", COUNTERFACTUAL_OFF)  # ... and without counterfactual experience
         have.setdefault("levers", LEVERS_OFF)  # ... and without stability levers

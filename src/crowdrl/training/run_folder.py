@@ -4,6 +4,11 @@ Nothing in a run folder is written before every refusal check has passed, and on
 itself created is ever removed. Hydra creates the run folder before the job starts, so the
 :class:`NewFolders` callback (``hydra.callbacks`` in ``conf/``) notes beforehand which of its
 folders do not exist yet; :func:`discard_new_folders` removes those, and only while they are empty.
+A sweep (``-m``) refused before any of its jobs wrote anything leaves no sweep folder either
+(:func:`discard_refused_sweeps`: Hydra writes ``multirun.yaml`` before it checks the jobs).
+
+Every command that writes keeps one rule (:func:`check_folder`): it writes only into a folder it
+created or one that carries its own marker, never over a record it did not write in this call.
 """
 
 from __future__ import annotations
@@ -16,7 +21,10 @@ from omegaconf import DictConfig
 
 RUN_MARKERS = (".lock", "status.json")  # every run folder of crowdrl holds one (the lock comes first)
 
+SWEEP_RECORD = "multirun.yaml"  # what Hydra writes into a sweep folder before it checks the sweep's jobs
+
 _new_folders: set[Path] = set()  # folders this process will create (noted before Hydra creates them)
+_new_sweeps: set[Path] = set()  # the sweep folders among them
 
 
 class RunFolderRefused(RuntimeError):
@@ -55,16 +63,25 @@ def discard_new_folders(path: Path | str) -> None:
         _new_folders.discard(p)
 
 
-def check_run_folder(path: Path | str) -> None:
-    """Refuse (:class:`RunFolderRefused`) a folder that holds files but was not made by crowdrl
-    (it has none of ``.lock`` / ``status.json``); a missing or empty folder is fine."""
+def check_folder(path: Path | str, markers: tuple[str, ...] = (), *, kind: str = "crowdrl run folder",
+                 ignore: tuple[str, ...] = ()) -> None:
+    """Refuse (:class:`RunFolderRefused`) ``path`` when it is a file, or a folder that holds anything
+    (names in ``ignore`` aside) but none of ``markers`` (a ``kind`` of folder that its command made;
+    no ``markers``: any file at all). A missing or empty folder is fine."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise RunFolderRefused(f"{path} is a file, not a folder; give the run a new or empty folder")
-    if path.is_dir() and any(path.iterdir()) and not any((path / m).exists() for m in RUN_MARKERS):
-        names = ", ".join(sorted(p.name for p in path.iterdir())[:5])
-        raise RunFolderRefused(f"{path} holds files ({names}) but is no crowdrl run folder (no "
-                               f"{' or '.join(RUN_MARKERS)}); give the run a new or empty folder")
+        raise RunFolderRefused(f"{path} is a file, not a folder; give a new or empty folder")
+    held = sorted(p.name for p in path.iterdir() if p.name not in ignore) if path.is_dir() else []
+    if held and not any((path / m).exists() for m in markers):
+        names = ", ".join(held[:5]) + (", ..." if len(held) > 5 else "")
+        made = f" but is no {kind} (no {' or '.join(markers)})" if markers else ""
+        raise RunFolderRefused(f"{path} holds files ({names}){made}; give a new or empty folder")
+
+
+def check_run_folder(path: Path | str) -> None:
+    """Refuse (:class:`RunFolderRefused`) a folder that holds files but was not made by crowdrl
+    (it has none of ``.lock`` / ``status.json``); a missing or empty folder is fine (:func:`check_folder`)."""
+    check_folder(path, RUN_MARKERS)
 
 
 class NewFolders(Callback):
@@ -75,10 +92,31 @@ class NewFolders(Callback):
         note_new_folders(str(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        note_new_folders(str(config.hydra.sweep.dir))  # every job folder below a new sweep folder is new too
+        sweep = Path(str(config.hydra.sweep.dir)).absolute()
+        if not sweep.exists():
+            _new_sweeps.add(sweep)
+        note_new_folders(sweep)  # every job folder below a new sweep folder is new too
 
 
 def is_new_folder(path: Path | str) -> bool:
     """Whether this process created ``path`` (directly, or below a sweep folder it created)."""
     path = Path(path).absolute()
     return path in _new_folders or any(p in _new_folders for p in path.parents)
+
+
+def discard_refused_sweeps() -> None:
+    """After a sweep (``-m``) ended in an error: remove each sweep folder this process created in
+    which no job wrote anything, i.e. that holds nothing but Hydra's ``multirun.yaml`` (written
+    before Hydra composes the jobs, so a bad value such as ``seed=abc,0`` would leave it behind),
+    then its new parents while empty (:func:`discard_new_folders`). A sweep any job wrote into is
+    left as it is."""
+    for sweep in sorted(_new_sweeps):
+        try:
+            names = [p.name for p in sweep.iterdir()]
+        except OSError:  # never made, or already gone
+            names = None
+        if names == [SWEEP_RECORD]:
+            (sweep / SWEEP_RECORD).unlink()
+        if names is not None:
+            discard_new_folders(sweep)
+        _new_sweeps.discard(sweep)
