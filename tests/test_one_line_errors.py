@@ -64,7 +64,7 @@ EXPORT_KEYS = "allowed: checkpoint, out, format, opset, check, overwrite"
 REPRODUCE_KEYS = ("allowed: budget, encoders, variants, seeds, train_scenario, scenarios, episodes, jobs, launcher, "
                   "threads, reps, planning, counterfactual.mode, counterfactual.actions, counterfactual.k, "
                   "counterfactual.weight, train.target_tau, train.huber_delta, train.grad_clip_norm, train.lr_end, "
-                  "train.q_layer_norm, out")
+                  "train.q_layer_norm, ceiling, out")
 
 
 @pytest.mark.parametrize("module, args, words", [

@@ -319,3 +319,36 @@ def test_episodes_budget_is_the_papers_episodes_at_the_demos_update_ratio(explor
         assert cfg.train[key] == demo.train[key], key
     assert cfg.train.target_update_frames == cfg.train.val_every_frames == 25_000
     assert cfg.exploration.anneal_frames == anneal and demo.exploration.anneal_frames == 100_000
+
+
+def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp_path):
+    """``ceiling=<folder>``: each run's and ORCA's gap.json beside its eval.json on the scenarios with a file,
+    the table's gap columns and ceiling row; a ceiling file of other cases is refused at start naming ``ceiling``."""
+    import shutil
+
+    from crowdrl.evaluation.ceiling import compute_ceiling, write_ceiling
+    from crowdrl.training.checkpoint import load_trained_network
+    from crowdrl.training.factories import crowd_config
+
+    out = tmp_path / "results"
+    shutil.copytree(reproduced, out)  # the module's other tests keep theirs as it was
+    run_cfg, _, _ = load_trained_network(out / "runs" / "egreedy-s0")
+    folder = tmp_path / "ceilings"
+    folder.mkdir()
+    write_ceiling(folder / "circle.json", compute_ceiling(crowd_config(run_cfg, scenario="circle"), cases=6,
+                                                          widths=(32,), chunk=6))
+    proc = run([*REPRODUCE, *TINY, f"out={out}", f"ceiling={folder}"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for run_dir in [*(out / "runs").glob("*-s*"), out / "orca"]:
+        if run_dir.is_dir():
+            gap = json.loads((run_dir / "eval-circle" / "gap.json").read_text())
+            fails = round((1 - gap["success_rate"]) * 6)
+            assert gap["avoidable_failures"] + gap["unavoidable_failures"] + gap["unknown_failures"] == fails
+            assert not (run_dir / "eval-square" / "gap.json").exists()
+    table = (out / "table.md").read_text()
+    circle, square = table.split("## square")
+    assert "avoidable failures" in circle and "| ceiling | 1 |" in circle and "avoidable failures" not in square
+    write_ceiling(folder / "circle.json", compute_ceiling(crowd_config(run_cfg, scenario="circle"), cases=5,
+                                                          widths=(32,), chunk=5))
+    refused = run([*REPRODUCE, *TINY, f"out={out}", f"ceiling={folder}"])
+    assert refused.returncode == 2 and "ceiling:" in refused.stderr and "cases 5" in refused.stderr, refused.stderr

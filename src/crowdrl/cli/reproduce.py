@@ -132,6 +132,31 @@ def evaluate_run(plan: Plan, run_dir: Path) -> None:
             evaluate_into(path.parent, checkpoint=run_dir, scenario=scenario, episodes=plan.episodes)
 
 
+def measure_gaps(plan: Plan) -> None:
+    """With ``ceiling=``: each run's (and ORCA's) gap to the ceiling on each scenario that has a ceiling file,
+    as ``gap.json`` beside its ``eval.json`` (the same cases evaluated again with the file: the per-case outcomes
+    are not in the records); existing ones are kept."""
+    from crowdrl.evaluation.reproduction import gap_path
+    from crowdrl.evaluation.report import write_records
+    from crowdrl.training.pipeline import evaluate_spec
+
+    for scenario in plan.scenarios:
+        file = plan.ceiling_file(scenario)
+        if file is None:
+            continue
+        targets = [(eval_path(plan.run_dir(m, s), scenario), {"checkpoint": plan.run_dir(m, s)})
+                   for m in plan.methods for s in plan.seeds]
+        targets.append((plan.out / "orca" / f"eval-{scenario}" / "eval.json", {"policy": "orca"}))
+        for path, what in targets:
+            if gap_path(path).exists():
+                continue
+            with EVAL_LOCK:
+                record, _ = evaluate_spec(**what, scenario=scenario, episodes=plan.episodes, record_episode=None,
+                                          ceiling=file)
+            write_records(path.parent, [record], stem="gap")
+            print(f"  gap: {path.parent} ({record['avoidable_failures']} avoidable failures)", flush=True)
+
+
 def launch_slurm(plan: Plan, pending: list[tuple[Method, int]]) -> None:
     """The pending runs as one Hydra multirun per method on the submitit SLURM launcher."""
     for method in plan.methods:
@@ -187,14 +212,15 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
                 failures.append(f"{what} {which}: {exc!r}")
     if failures:
         raise RuntimeError("some runs failed (rerun to resume them):\n  " + "\n  ".join(failures))
-    from crowdrl.evaluation.reproduction import collect, launch_mode, recorded_wall, table_rows, write_table
+    from crowdrl.evaluation.reproduction import add_gaps, collect, launch_mode, recorded_wall, table_rows, write_table
     from crowdrl.viz.reproduction import write_figures
 
+    measure_gaps(plan)
     rows = table_rows(plan, collect(plan))
     wall_s = time.perf_counter() - start
     # a call that trained nothing keeps the wall-clock of the call that did, and how it launched its runs
     # (recorded in table.json), not its own jobs=
-    write_table(plan, rows, *((wall_s, launch_mode(plan)) if pending else recorded_wall(plan)))
+    write_table(plan, add_gaps(plan, rows), *((wall_s, launch_mode(plan)) if pending else recorded_wall(plan)))
     write_figures(plan, rows)
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
 

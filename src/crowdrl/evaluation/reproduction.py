@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 from crowdrl.evaluation.report import paper_value, read_eval_record, read_summary
@@ -56,14 +57,63 @@ def table_rows(plan: Plan, records: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+GAP_METRICS = ("avoidable_failures", "unavoidable_failures", "time_over_ceiling")
+
+
+def gap_path(eval_json: Path) -> Path:
+    """Where the gap record to the ceiling lives beside an eval record (``gap.json``)."""
+    return eval_json.parent / "gap.json"
+
+
+def add_gaps(plan: Plan, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``rows`` with the gap to the ceiling where every seed of a row has its ``gap.json`` (mean and 95 % CI over
+    seeds of :data:`GAP_METRICS`), and a ``ceiling`` row per scenario with a ceiling file (its success and mean
+    time); ``rows`` unchanged without ``plan.ceiling``."""
+    import numpy as np
+
+    from crowdrl.evaluation.ceiling import read_ceiling
+    from crowdrl.evaluation.stats import mean_interval
+
+    if plan.ceiling is None:
+        return rows
+    by_method = {m.name: m for m in plan.methods}
+    out = []
+    for scenario in plan.scenarios:
+        file = plan.ceiling_file(scenario)
+        for row in (r for r in rows if r["scenario"] == scenario):
+            if file is not None:
+                method = by_method.get(row["method"])
+                evals = ([eval_path(plan.run_dir(method, s), scenario) for s in plan.seeds] if method is not None
+                         else [plan.out / "orca" / f"eval-{scenario}" / "eval.json"])
+                gaps = [gap_path(e) for e in evals]
+                if all(g.exists() for g in gaps):
+                    recs = [read_eval_record(g) for g in gaps]
+                    for key in GAP_METRICS:
+                        values = np.array([r[key] if r[key] is not None else np.nan for r in recs], dtype=np.float64)
+                        mean, lo, hi = mean_interval({key: values}, reps=plan.reps)[key]
+                        row = {**row, key: mean, f"{key}_lo": lo, f"{key}_hi": hi, f"{key}_per_seed": values.tolist()}
+            out.append(row)
+        if file is not None:
+            c = read_ceiling(file)
+            n = c.counts()
+            out.append({"method": "ceiling", "scenario": scenario, "seeds": 1, "episodes": c.cases,
+                        "success_rate": n["solved"] / c.cases, "navigation_time": c.mean_time(),
+                        "unavoidable_failures": float(n["infeasible"]), "unknown": n["unknown"],
+                        "ceiling_file": str(file)})
+    return out
+
+
 def _cell(row: dict[str, Any], key: str, digits: int) -> str:
     """The mean over seeds with its interval (from two seeds on), then the paper's value if it has one."""
-    text = interval_cell(row, key, digits, interval=row["seeds"] > 1)
-    paper = row[f"{key}_paper"]
+    if key not in row:
+        return "–"
+    text = interval_cell(row, key, digits, interval=row["seeds"] > 1 and f"{key}_lo" in row)
+    paper = row.get(f"{key}_paper", math.nan)
     return text if text == "–" or math.isnan(paper) else f"{text} ({paper:.{digits}f})"
 
 
 TABLE_HEADER = ("method", "seeds", "success", "collision", "nav time (s)", "avg return", "P(improve on ε-greedy)")
+GAP_HEADER = ("avoidable failures", "unavoidable", "time over ceiling (s)")
 
 
 def launch_mode(plan: Plan) -> str:
@@ -104,10 +154,18 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_
                   f"{wall_s / 60:.1f} min."]
     lines.append("")
     for scenario in plan.scenarios:
+        mine = [r for r in rows if r["scenario"] == scenario]
+        gaps = any(r["method"] == "ceiling" for r in mine)
         cells = [[r["method"], r["seeds"], _cell(r, "success_rate", 3), _cell(r, "collision_rate", 3),
-                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), interval_cell(r, "p_improve", 2)]
-                 for r in rows if r["scenario"] == scenario]
-        lines += [f"## {scenario}", "", markdown_table(TABLE_HEADER, cells), ""]
+                  _cell(r, "navigation_time", 2), _cell(r, "average_return", 4), interval_cell(r, "p_improve", 2),
+                  *((_cell(r, "avoidable_failures", 1), _cell(r, "unavoidable_failures", 1),
+                     _cell(r, "time_over_ceiling", 2)) if gaps else ())] for r in mine]
+        lines += [f"## {scenario}", "", markdown_table(TABLE_HEADER + (GAP_HEADER if gaps else ()), cells), ""]
+        if gaps:
+            c = next(r for r in mine if r["method"] == "ceiling")
+            lines += [f"Ceiling: {c['ceiling_file']} (experiments/ceiling.py; {c['unknown']} cases unknown). Avoidable "
+                      "failures: failed where a path exists; unavoidable: proven infeasible; time over the ceiling: "
+                      "the mean over the cases both solve (docs/ceiling.md). A dash: no gap.json for every seed.", ""]
     return "\n".join(lines)
 
 

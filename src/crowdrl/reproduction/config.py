@@ -50,6 +50,9 @@ class ReproduceConfig:
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled)
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)  # every run's train.counterfactual
     train: LeverConfig = field(default_factory=LeverConfig)  # every run's stability levers (train.target_tau, ...)
+    # a folder of ceiling files <scenario>.json (experiments/ceiling.py, test seed 0, `episodes` cases): the table adds
+    # each method's failures where a path exists and its time over the ceiling, and a ceiling row (null: none)
+    ceiling: Optional[str] = None
     out: str = MISSING  # the results folder
 
 

@@ -66,6 +66,14 @@ class Plan:
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled), as the paper's did
     counterfactual: tuple[tuple[str, Any], ...] = tuple(COUNTERFACTUAL_OFF.items())  # every run's train.counterfactual
     levers: tuple[tuple[str, Any], ...] = ()  # every run's stability levers that differ from their defaults
+    ceiling: Path | None = None  # a folder of ceiling files <scenario>.json (not in the manifest: added at any time)
+
+    def ceiling_file(self, scenario: str) -> Path | None:
+        """The ceiling file of ``scenario`` in the ceiling folder (``None``: no folder, or no file for it)."""
+        if self.ceiling is None:
+            return None
+        path = self.ceiling / f"{scenario}.json"
+        return path if path.is_file() else None
 
     def lever_overrides(self) -> list[str]:
         """``train.<lever>=<value>`` for each lever this reproduction turns on (none at the defaults)."""
@@ -137,13 +145,41 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
     counterfactual = dataclasses.asdict(s.counterfactual)
     levers = tuple((k, v) for k, v in dataclasses.asdict(s.train).items() if v != LEVERS_OFF[k])
+    scenarios = names("scenarios", SCENARIOS)
+    ceiling = None if s.ceiling is None else Path(s.ceiling)
+    if ceiling is not None:
+        check_ceilings(ceiling, scenarios, s.episodes)
     return Plan(counterfactual=tuple(counterfactual.items()), levers=levers, planning=s.planning, budget=s.budget,
+                ceiling=ceiling,
                 encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
-                train_scenario=s.train_scenario, scenarios=names("scenarios", SCENARIOS),
+                train_scenario=s.train_scenario, scenarios=scenarios,
                 episodes=at_least("episodes", 1), jobs=at_least("jobs", 1), launcher=s.launcher,
                 threads=at_least("threads", 1), reps=at_least("reps", 100), out=Path(s.out))
 
+
+
+def check_ceilings(folder: Path, scenarios: tuple[str, ...], episodes: int) -> None:
+    """Refuse (naming ``ceiling``) a ceiling folder that is missing, holds no file for any test scenario, or
+    holds one of another stream than the tests' (test seed 0, ``episodes`` cases, its scenario); each run's
+    crowd is checked against the file when it is evaluated."""
+    from crowdrl.evaluation.ceiling import read_ceiling
+
+    if not folder.is_dir():
+        raise PlanError(f"ceiling: {folder} is not a folder (give the folder of <scenario>.json ceiling files)")
+    found = [sc for sc in scenarios if (folder / f"{sc}.json").is_file()]
+    if not found:
+        raise PlanError(f"ceiling: {folder} holds none of {', '.join(f'{sc}.json' for sc in scenarios)}")
+    for sc in found:
+        try:
+            c = read_ceiling(folder / f"{sc}.json")
+        except ValueError as exc:
+            raise PlanError(f"ceiling: {exc}") from None
+        asked = {"scenario": sc, "split": "test", "seed": 0, "cases": episodes}
+        have = {"scenario": c.scenario, "split": c.split, "seed": c.seed, "cases": c.cases}
+        for key in asked:
+            if asked[key] != have[key]:
+                raise PlanError(f"ceiling: {folder / f'{sc}.json'} has {key} {have[key]!r}; the tests' is {asked[key]!r}")
 
 
 def check_runs(plan: Plan) -> None:
