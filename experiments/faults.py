@@ -122,6 +122,51 @@ def nothing_overwritten(scratch: Path, done: Path, record: Callable[[str, str, s
            one_line_exit_2(proc, "seed:") and not any(where.iterdir()))
 
 
+def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None]) -> None:
+    """Issue 52, D2-D15: values refused at start naming the key (no folder), SIGTERM to evaluate.py handled
+    as Ctrl-C, a combination that crashed at its first update now trains, a hand-edited record refused."""
+    for override, words in (("env.lidar_rays=100000000", ["env.lidar_rays", "0..1024"]),
+                            ("train.q_layer_norm=2", ["train.q_layer_norm: must be true or false, got 2"])):
+        folder = scratch / override.replace("=", "-")
+        proc = train(*SMOKE, override, f"hydra.run.dir={folder}")
+        record(f"train.py {override}", "exit 2 at start naming the key, no run folder",
+               f"exit {proc.returncode}: {last_line(proc.stderr)}", one_line_exit_2(proc, *words) and not folder.exists())
+    folder = scratch / "eval-sigterm"
+    proc = subprocess.Popen([sys.executable, str(ROOT / "experiments" / "evaluate.py"), "policy=orca",
+                             "eval.episodes=3000", "eval.record_episode=null", f"hydra.run.dir={folder}"], env=ENV,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None and not folder.exists():
+        time.sleep(0.1)
+    time.sleep(1.0)  # into the evaluation
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    record("SIGTERM during evaluate.py", "exit 130 as Ctrl-C, the eval folder it made removed",
+           f"exit {proc.returncode}: {last_line(err)}, folder {'left' if folder.exists() else 'gone'}",
+           proc.returncode == 130 and "interrupted" in err and not folder.exists())
+    folder = scratch / "re3-merged-n2"
+    proc = train(*SMOKE, "exploration=re3", "train.counterfactual.mode=merged", "train.n_step=2",
+                 f"hydra.run.dir={folder}")
+    record("train.py exploration=re3 train.counterfactual.mode=merged train.n_step=2",
+           "trains (was KeyError one_step_next at the first update)", f"exit {proc.returncode}, status {status(folder)}",
+           proc.returncode == 0 and status(folder) == "completed")
+    out = scratch / "reproduce-edited"
+    args = ["variants=[egreedy]", "seeds=[0]", "episodes=4", "budget=smoke", f"out={out}"]
+    first = cli("reproduce", *args)
+    edited = out / "runs" / "egreedy-s0" / "eval-circle" / "eval.json"
+    if first.returncode == 0 and edited.exists():
+        table = (out / "table.md").read_bytes()
+        rec = json.loads(edited.read_text())
+        edited.write_text(json.dumps({**rec, "success_rate": 0.99 if rec["success_rate"] != 0.99 else 0.5}))
+        proc = cli("reproduce", *args)
+        ok = one_line_exit_2(proc, str(edited), "success_rate", "summary.json") and (out / "table.md").read_bytes() == table
+        observed = f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}"
+    else:
+        ok, observed = False, f"the first reproduce.py failed: exit {first.returncode}: {last_line(first.stderr)}"
+    record("reproduce.py rerun, a run's eval-circle/eval.json hand-edited (in range)",
+           "exit 2 naming the file and its summary.json, table.md unchanged", observed, ok)
+
+
 def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, at_frames: int) -> int:
     """Start a run, send ``sig`` once its last.pt holds ``at_frames`` frames or more; the frames it held."""
     from crowdrl.training.checkpoint import CheckpointError, load_checkpoint
@@ -218,6 +263,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     record("evaluate.py checkpoint=<a text file>", "exit 2, 'not a torch file'", f"exit {proc.returncode}: "
            f"{last_line(proc.stderr)}", one_line_exit_2(proc, "not a torch file") and not (scratch / "eval-text").exists())
     nothing_overwritten(scratch, done, record)
+    issue_52_defects(scratch, record)
     from omegaconf import OmegaConf
 
     humans = int(OmegaConf.load(done / "config.yaml").env.num_humans)

@@ -251,16 +251,16 @@ def test_reproduce_gives_the_stability_levers_to_every_run_and_names_them_in_its
         make_plan({**cfg, "train": {"target_taus": 0.5}})
 
 
-def _tiny_run(total_frames: int, mode: str = "second_update"):
+def _tiny_run(total_frames: int, mode: str = "second_update", exploration: str = "egreedy", **train):
     return validate({
         "preset": "smoke", "encoder": {"name": "sarl"}, "env": {"num_humans": 4},
         "logger": {"name": "csv", "progress_bar": False, "render": False},
-        "planning": {"enabled": False}, "exploration": {"name": "egreedy"},
+        "planning": {"enabled": False}, "exploration": {"name": exploration},
         "train": {"num_envs": 4, "steps_per_batch": 8, "total_frames": total_frames, "warmup_frames": 32,
                   "batch_size": 16, "buffer_size": 1000, "updates_per_frame": 0.25, "target_update_frames": 32,
                   "val_every_frames": 64, "val_episodes": 2, "checkpoint_every_frames": 32, "test_episodes": 2,
                   "compile_acting": False, "compile_loss": False, "save_buffer": True,
-                  "counterfactual": {"mode": mode, "actions": "random", "k": 3}}}, resources=False)
+                  "counterfactual": {"mode": mode, "actions": "random", "k": 3}, **train}}, resources=False)
 
 
 @pytest.mark.parametrize("mode", ["second_update", "merged"])
@@ -297,3 +297,21 @@ def test_look_ahead_refuses_actions_not_shaped_states_by_candidates():
     with pytest.raises(ValueError, match=r"actions must be shaped \[M, w\]"):
         look_ahead(cfg, action_table(), torch.zeros(3, 9), torch.zeros(3, 2, 5), torch.zeros(3, 2, 5),
                    torch.zeros(3, dtype=torch.int64))
+
+
+@pytest.mark.parametrize("exploration, mode", [("icm", "second_update"), ("re3", "merged")])
+def test_an_intrinsic_bonus_with_n_step_returns_trains_with_counterfactual_experience(tmp_path, exploration, mode):
+    """Issue 52 (D2): with n > 1 the bonus reads the one-step successor (``one_step_next``); the counterfactual
+    transitions (one step) hold theirs there too, so the first update no longer fails with a KeyError."""
+    from crowdrl.training import Trainer
+    from crowdrl.training.variants import ONE_STEP_KEY
+
+    trainer = Trainer(_tiny_run(64, mode, exploration, n_step=2, save_buffer=False), tmp_path / "run")
+    try:
+        trainer.train()
+        sample = trainer.buffer.sample()
+        batch = trainer.update_part.counterfactual_batch(sample)
+        assert torch.equal(batch.get((ONE_STEP_KEY, "robot_rc")), batch.get(("next", "robot_rc")))
+    finally:
+        trainer.close()
+    assert trainer.counters.updates > 0

@@ -304,3 +304,30 @@ def test_the_example_refuses_bad_metadata_or_a_non_model_in_one_line(exported, t
     expected = ("not an ONNX model" if value is None
                 else f"crowdrl.time_step: must be a finite number of seconds > 0, got {value!r}")
     assert expected in err and "Traceback" not in err, err
+
+
+def test_the_example_refuses_non_finite_states_and_runs_with_no_human_in_view(exported):
+    """Issue 52 (D13): a NaN or inf state is refused naming the field (not NaN Q values and action 0); with no
+    human in view the example passes one absent row (not onnxruntime's Reshape error), which the model ignores."""
+    example = load_example()
+    robot = np.array([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, np.pi / 2])
+    humans = np.array([[0.3, -2.5, 0.0, -0.8, 0.3], [-1.5, -1.0, 0.6, 0.0, 0.3]])
+    for field, value in ((2, np.nan), (8, np.inf), (5, -np.inf)):
+        bad = robot.copy()
+        bad[field] = value
+        with pytest.raises(ValueError, match=f"robot: {example.ROBOT_FIELDS[field]} not finite"):
+            example.observation(bad, humans)
+    bad = humans.copy()
+    bad[1, 4] = np.inf
+    with pytest.raises(ValueError, match=r"humans: row\(s\) \[1\] not finite \(NaN or inf; row 1: radius\)"):
+        example.observation(robot, bad)
+    with pytest.raises(ValueError, match="humans: must be rows of the 5 values"):
+        example.observation(robot, np.zeros(7))
+    session = onnxruntime.InferenceSession(str(exported[1]), providers=["CPUExecutionProvider"])
+    alone = example.observation(robot, np.zeros((0, 5)))
+    assert alone["humans_rc"].shape == (1, 1, 5) and not alone["humans_mask"].any()
+    q, action, command = session.run(None, alone)
+    assert np.isfinite(q).all() and np.isfinite(command).all()
+    padded = example.observation(robot, [], slots=4)  # more absent rows, whatever they hold: the same answer
+    padded["humans_rc"][:] = np.random.default_rng(0).normal(size=padded["humans_rc"].shape)
+    np.testing.assert_allclose(session.run(None, padded)[0], q, atol=1e-6, rtol=0)

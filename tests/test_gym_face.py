@@ -104,6 +104,35 @@ def test_gymnasium_rejects_bad_actions():
         env.reset(options={"episode_id": -2})
 
 
+def test_reset_options_are_checked_naming_the_option_and_its_range():
+    """Issue 52 (D11): an episode id beyond int64 names the option's range (not numpy's 'Overflow when unpacking
+    long long'); options that are no dict, or hold a misspelt key, are refused naming them and the keys allowed."""
+    env = gym.make("crowdrl/CircleCrossing-v0").unwrapped
+    for bad in (2**63, -1, 1.0, True, "3"):
+        with pytest.raises(ValueError, match=r"options\['episode_id'\] must be an integer in 0\.\.2\*\*63-1"):
+            env.reset(seed=0, options={"episode_id": bad})
+    with pytest.raises(ValueError, match=r"options: unknown key\(s\) 'episod_id'; allowed: episode_id"):
+        env.reset(seed=0, options={"episod_id": 3})
+    for bad in ("junk", [1, 2], ("episode_id", 3)):
+        with pytest.raises(ValueError, match=r"options must be None or a dict with the keys episode_id, got"):
+            env.reset(seed=0, options=bad)
+    first, _ = env.reset(seed=0, options={"episode_id": 2**63 - 1})
+    assert env.reset(seed=0, options={"episode_id": np.int64(2**63 - 1)})[1]["episode_id"] == 2**63 - 1
+    assert np.array_equal(env.reset(seed=0, options={"episode_id": 2**63 - 1})[0]["robot"], first["robot"])
+    assert env.reset(seed=0, options={})[1]["episode_id"] == 0  # no option: the stream's next episode
+
+
+def test_a_complex_holonomic_velocity_is_refused():
+    """Issue 52 (D12): numpy would drop the imaginary part of ``1+1j`` (with only a warning); a bool is no speed."""
+    hol = gym.make("crowdrl/CircleCrossing-v0", robot_kinematics="holonomic").unwrapped
+    hol.reset(seed=0)
+    for bad in (np.array([1 + 1j, 0]), [0.5 + 0j, 0.0], np.array([True, False]), np.array([0.1, 0.2], dtype=object)):
+        with pytest.raises(ValueError, match="action must be a finite real velocity"):
+            hol.step(bad)
+    hol.step(np.array([0.5, 0], dtype=np.int64))  # integers and floats of any width are velocities
+    hol.step(np.array([0.5, 0.25], dtype=np.float32))
+
+
 def test_render_rgb_array():
     assert CrowdNavGymEnv.metadata == {"render_modes": ["rgb_array"], "render_fps": 4}
     env = gym.make("crowdrl/CircleCrossing-v0", render_mode="rgb_array")

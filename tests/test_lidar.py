@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crowdrl.envs import CrowdNavEnv
-from crowdrl.sim.config import CrowdConfig
+from crowdrl.sim.config import MAX_LIDAR_RAYS, CrowdConfig
 from crowdrl.sim.lidar import lidar_angles, lidar_scan, observe_lidar
 from crowdrl.sim.obstacles import obstacle_segments
 
@@ -168,9 +168,10 @@ def test_bad_arguments_and_config_values_are_refused_naming_them():
             lidar_scan(o, h, 4, rng)
     with pytest.raises(ValueError, match="heading"):
         lidar_scan(o, torch.zeros(3), 4, 4.0)
-    for rays in (-1, True, 2.5):
+    for rays in (-1, True, 2.5, 1025, 100_000_000):
         with pytest.raises(ValueError, match="lidar_rays"):
             CrowdConfig(lidar_rays=rays)
+    assert CrowdConfig(lidar_rays=MAX_LIDAR_RAYS).lidar_rays == 1024
     for rng in (0.0, -2.0, math.inf, math.nan, True):
         with pytest.raises(ValueError, match="lidar_range"):
             CrowdConfig(lidar_range=rng)
@@ -236,6 +237,9 @@ def test_training_builds_envs_and_actors_that_ignore_the_scan():
         assert out["next", "lidar"].shape == (2, 2, 8)
     with pytest.raises(ConfigError, match="env.lidar_rays"):
         validate({"env": {"lidar_rays": -1}})
+    # issue 52 (D8): an upper bound, checked before anything is allocated (1e8 rays reached 9.3 GB, then a traceback)
+    with pytest.raises(ConfigError, match=r"env.lidar_rays must be an integer in 0\.\.1024 .*got 100000000"):
+        validate({"env": {"lidar_rays": 100_000_000}}, resources=False)
     with pytest.raises(ConfigError, match="env.lidar_range"):
         validate({"env": {"lidar_range": 0.0}})
     # without a scan the lidar keys leave a run's fingerprint as it was before they existed

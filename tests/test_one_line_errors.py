@@ -10,6 +10,7 @@ import importlib
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -46,6 +47,10 @@ def scratch(tmp_path, monkeypatch):
     ("train", ["sede=1"], ["train.py: sede: not read by train.py (unknown key); allowed: env,", " seed,"]),
     ("train", ["train.lrr=1"], ["train.lrr: not read by train.py (unknown key); allowed: train.num_envs,", "train.lr,"]),
     ("train", ["resume="], ["resume: is empty"]),
+    # issue 52: a bool key given 2 (Hydra would store true) (D10); a lidar beyond its bound (D8)
+    ("train", ["train.q_layer_norm=2"], ["train.py: train.q_layer_norm: must be true or false, got 2"]),
+    ("train", ["env.lidar_rays=100000000"], ["train.py: invalid configuration: env.lidar_rays must be an integer in "
+                                             "0..1024 (0: no scan), got 100000000"]),
     ("evaluate", ["env=mars"], ["Could not find 'env/mars'", "available options in 'env': circle"]),
     ("demo", ["train.num_envs=abc"], ["demo.py: train.num_envs:", "could not be converted to Integer"]),
 ])
@@ -87,6 +92,11 @@ REPRODUCE_KEYS = ("allowed: budget, encoders, variants, seeds, train_scenario, s
     ("export", ["overwrite=maybe"], ["export.py: overwrite:", "'maybe' is not a valid bool"]),
     ("reproduce", ["episodes=abc"], ["reproduce.py: episodes:", "'abc' of type 'str' could not be converted to Integer"]),
     ("reproduce", ["planning=maybe"], ["reproduce.py: planning:", "'maybe' is not a valid bool"]),
+    # a bool key given an integer, which Hydra would store as true (issue 52, D10)
+    ("evaluate", ["eval.robot_visible=2"], ["evaluate.py: eval.robot_visible: must be true or false, got 2"]),
+    ("export", ["check=2"], ["export.py: check: must be true or false, got 2"]),
+    ("reproduce", ["train.q_layer_norm=2"], ["reproduce.py: train.q_layer_norm: must be true or false, got 2"]),
+    ("reproduce", ["planning=0"], ["reproduce.py: planning: must be true or false, got 0"]),
     ("reproduce", ["counterfactual.k=abc"], ["reproduce.py: counterfactual.k:", "could not be converted to Integer"]),
     ("reproduce", ["seeds=[0,x]"], ["reproduce.py: seeds", "'x' of type 'str' could not be converted to Integer"]),
     ("reproduce", ["variants=egreedy"], ["reproduce.py: variants:", "give a list in brackets: variants=[...]"]),
@@ -126,22 +136,34 @@ def test_a_full_or_read_only_disk_during_training_is_one_line_naming_the_file(mo
     assert not (scratch / "run").exists()  # the monkeypatched run wrote nothing: the folder Hydra made is gone
 
 
-@pytest.mark.parametrize("fault", ["ENOSPC", "EROFS", "stopped"])
+@pytest.mark.parametrize("fault", ["ENOSPC", "EROFS", "stopped", "SIGTERM"])
 def test_a_failed_or_stopped_evaluation_is_one_line_and_leaves_no_folder(monkeypatch, capsys, scratch, fault):
+    """A full or read-only disk: exit 2; Ctrl-C, and SIGTERM as Ctrl-C (issue 52, D9): exit 130; either way the
+    eval folder the command made is removed while empty."""
+    import signal
+
     import crowdrl.evaluation.report as report
 
     def write_records(folder, records, stem="eval"):
         if fault == "stopped":
             raise KeyboardInterrupt
+        if fault == "SIGTERM":
+            # without a handler SIGTERM would kill this test process: fail instead
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, None), "SIGTERM is not handled"
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises at once
+            raise AssertionError("SIGTERM did not stop the evaluation")
         raise OSError(getattr(errno, fault), os.strerror(getattr(errno, fault)), str(Path(folder) / "eval.json"))
 
     monkeypatch.setattr(report, "write_records", write_records)
     code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
                         "hydra.run.dir=runs/eval-x")
     line = one_line(err)
-    assert code == (130 if fault == "stopped" else 2), line
-    assert ("interrupted" if fault == "stopped" else "eval.json: ") in line, line
+    stopped = fault in ("stopped", "SIGTERM")
+    assert code == (130 if stopped else 2), line
+    assert ("evaluate.py: interrupted" if stopped else "eval.json: ") in line, line
     assert not (scratch / "runs").exists()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the command's handler is gone with it
 
 
 def test_evaluate_refuses_episodes_beyond_memory_naming_the_key(monkeypatch, capsys, scratch):

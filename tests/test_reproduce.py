@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -352,3 +353,49 @@ def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp
                                                           widths=(32,), chunk=5))
     refused = run([*REPRODUCE, *TINY, f"out={out}", f"ceiling={folder}"])
     assert refused.returncode == 2 and "ceiling:" in refused.stderr and "cases 5" in refused.stderr, refused.stderr
+
+
+def test_a_runs_record_is_cross_checked_against_its_own_summary(tmp_path):
+    """Issue 52 (D15): a hand-edited, in-range eval-circle/eval.json (success 0.0 -> 0.99) made the table while the
+    run's summary.json, the same checkpoint on the same scenario and cases, still said 0.0: now refused naming the
+    file; a record of another test (other cases, another scenario, another crowd) is not compared."""
+    from omegaconf import OmegaConf
+
+    from crowdrl.evaluation.report import RecordError, read_run_eval_record
+    from crowdrl.evaluation.reproduction import collect
+    from crowdrl.reproduction.plan import eval_path, make_plan
+    from crowdrl.resources import config_dir
+
+    cfg = OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce.yaml"))
+    cfg.pop("hydra")
+    cfg.pop("defaults")
+    cfg.update(out=str(tmp_path), budget="smoke", variants=["egreedy"], seeds=[0], episodes=6)
+    plan = make_plan(cfg)
+    run_dir = plan.run_dir(plan.methods[0], 0)
+    metrics = {"episodes": 6, "success_rate": 0.0, "collision_rate": 0.5, "timeout_rate": 0.5, "navigation_time": None,
+               "average_return": -0.125, "discomfort_frequency": 0.25, "discomfort_min_separation": 0.05}
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yaml").write_text("env:\n  scenario: circle\n")
+    (run_dir / "summary.json").write_text(json.dumps({"test": {"checkpoint_frames": 640, "test_seed": 0,
+                                                               "metrics": metrics}, "wall_s": 1.0}))
+    record = {**{k: v for k, v in metrics.items() if k != "discomfort_min_separation"}, "min_separation": 0.05,
+              "seed": 0, "policy": "sgd3qn+egreedy", "checkpoint": str(run_dir / "checkpoints" / "best.pt"),
+              "checkpoint_frames": 640, "train_scenario": "circle", "train_seed": 0}
+    for scenario in plan.scenarios:
+        for path in (eval_path(run_dir, scenario), plan.out / "orca" / f"eval-{scenario}" / "eval.json"):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({**record, "scenario": scenario, "success_rate": 0.5, "timeout_rate": 0.0}
+                                       if scenario != "circle" else {**record, "scenario": scenario}))
+    assert collect(plan)["egreedy"]["circle"][0]["success_rate"] == 0.0  # agrees with summary.json
+    edited = eval_path(run_dir, "circle")
+    edited.write_text(json.dumps({**record, "scenario": "circle", "success_rate": 0.99}))
+    words = f"{edited}: success_rate: 0.99 disagrees with the run's own {run_dir / 'summary.json'}"
+    with pytest.raises(RecordError, match=re.escape(words)):
+        collect(plan)
+    # another test of the same run is not the summary's: other cases, another crowd, another checkpoint
+    for other in ({"episodes": 1000}, {"seed": 1}, {"human_model": "linear"}, {"checkpoint_frames": 320}):
+        edited.write_text(json.dumps({**record, "scenario": "circle", "success_rate": 0.99, **other}))
+        assert read_run_eval_record(edited, run_dir)["success_rate"] == 0.99
+    (run_dir / "summary.json").unlink()  # nothing to compare with
+    edited.write_text(json.dumps({**record, "scenario": "circle", "success_rate": 0.99}))
+    assert read_run_eval_record(edited, run_dir)["success_rate"] == 0.99

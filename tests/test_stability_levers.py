@@ -33,6 +33,17 @@ def test_bad_lever_values_are_refused_naming_the_key(key, value):
         validate({"train": {key: value}}, resources=False)
 
 
+@pytest.mark.parametrize("value", [2, 0, "yes", "true"])
+def test_a_bool_key_given_anything_but_true_or_false_is_refused_naming_it(value):
+    """Issue 52 (D10): OmegaConf makes any integer a bool (``q_layer_norm: 2`` was stored as ``true``); a
+    config (the Python API, a resumed run's config.yaml) must give ``true`` or ``false``."""
+    with pytest.raises(ConfigError, match=f"train.q_layer_norm: must be true or false, got {value!r}"):
+        validate({"train": {"q_layer_norm": value}}, resources=False)
+    with pytest.raises(ConfigError, match="logger.render: must be true or false"):
+        validate({"logger": {"render": 1}}, resources=False)
+    assert validate({"train": {"q_layer_norm": True}}, resources=False).train.q_layer_norm is True
+
+
 def test_huber_loss_is_squared_error_inside_delta_and_linear_beyond():
     torch.manual_seed(0)
     net = torch.nn.Linear(3, 4)

@@ -23,6 +23,8 @@ from crowdrl.sim.lidar import observe_lidar
 from crowdrl.sim.scenarios import initial_states
 
 SPLITS = tuple(rng.STREAMS)
+RESET_OPTIONS = ("episode_id",)  # the keys reset(options=...) reads
+MAX_EPISODE_ID = rng.MAX_SEED  # episode ids are int64: 0..2**63-1
 
 
 class CrowdNavGymEnv(gym.Env):
@@ -43,7 +45,8 @@ class CrowdNavGymEnv(gym.Env):
     ``reset(seed=s)`` selects scenario stream ``s`` of ``split`` and restarts its episode counter;
     the first reset without a seed draws the stream from ``self.np_random`` (OS entropy), so the
     sub-envs of an unseeded vector env play different episodes. Later resets take the stream's
-    next episode; ``reset(options={"episode_id": i})`` loads episode ``i``.
+    next episode; ``reset(options={"episode_id": i})`` loads episode ``i`` (``0 <= i <= 2**63-1``); any other
+    option (a misspelt key, options that are no dict) is refused, naming it and the keys allowed.
     ``render_mode="rgb_array"``: :meth:`render` returns an ``HxWx3`` uint8 frame.
     """
 
@@ -118,6 +121,7 @@ class CrowdNavGymEnv(gym.Env):
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
                                  or not 0 <= seed <= rng.MAX_SEED):  # never reduced modulo 2**64
             raise ValueError(f"seed must be None or an integer in 0..2**63-1, got {seed!r}")
+        episode_option = self._episode_option(options)
         super().reset(seed=seed)
         if seed is not None:
             self._stream_seed = int(seed)
@@ -126,11 +130,8 @@ class CrowdNavGymEnv(gym.Env):
             self._stream_seed = int(self.np_random.integers(rng.MAX_SEED))
             self._next_episode = 0
         episode = self._next_episode
-        if options and "episode_id" in options:
-            episode = options["episode_id"]
-            if isinstance(episode, bool) or not isinstance(episode, (int, np.integer)) or episode < 0:
-                raise ValueError(f"options['episode_id'] must be an integer >= 0, got {episode!r}")
-            episode = int(episode)
+        if episode_option is not None:
+            episode = episode_option
         else:
             self._next_episode += 1
         key = rng.episode_keys(self.split, self._stream_seed, torch.tensor([episode]))
@@ -138,6 +139,26 @@ class CrowdNavGymEnv(gym.Env):
         self._episode = episode
         self._ended = None
         return self._obs(), self._info()
+
+    @staticmethod
+    def _episode_option(options: Any) -> int | None:
+        """``options["episode_id"]`` checked (``None``: not given); options that are no dict, or hold a key
+        other than :data:`RESET_OPTIONS`, are refused naming it."""
+        if options is None:
+            return None
+        allowed = ", ".join(RESET_OPTIONS)
+        if not isinstance(options, dict):
+            raise ValueError(f"options must be None or a dict with the keys {allowed}, got {options!r}")
+        unknown = [key for key in options if key not in RESET_OPTIONS]
+        if unknown:
+            raise ValueError(f"options: unknown key(s) {', '.join(map(repr, unknown))}; allowed: {allowed}")
+        if "episode_id" not in options:
+            return None
+        episode = options["episode_id"]
+        if (isinstance(episode, (bool, np.bool_)) or not isinstance(episode, (int, np.integer))
+                or not 0 <= episode <= MAX_EPISODE_ID):
+            raise ValueError(f"options['episode_id'] must be an integer in 0..2**63-1 ({MAX_EPISODE_ID}), got {episode!r}")
+        return int(episode)
 
     def _action_tensor(self, action: Any) -> torch.Tensor:
         """The action as the ``[1]`` index or ``[1, 2]`` velocity :func:`decode_action` takes."""
@@ -148,11 +169,13 @@ class CrowdNavGymEnv(gym.Env):
             return torch.tensor([int(a)])
         v = self.config.robot_v_pref
         try:
-            a = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError):
+            a = np.asarray(action)
+        except (TypeError, ValueError):  # a ragged sequence
             a = None
+        # real numbers only: a complex velocity would lose its imaginary part to float64, a bool is no speed
+        a = a.astype(np.float64) if a is not None and a.dtype.kind in "iuf" else None
         if a is None or a.shape != (2,) or not np.isfinite(a).all() or float(np.abs(a).max()) > v:
-            raise ValueError(f"action must be a finite velocity of shape (2,) in [-{v}, {v}]^2, got {action!r}")
+            raise ValueError(f"action must be a finite real velocity of shape (2,) in [-{v}, {v}]^2, got {action!r}")
         return torch.as_tensor(a, dtype=torch.float32).view(1, 2)
 
     def step(self, action):

@@ -46,12 +46,40 @@ def robot_centric(robot: np.ndarray, humans: np.ndarray) -> tuple[np.ndarray, np
     return robot_rc, humans_rc
 
 
+ROBOT_FIELDS = ("px", "py", "vx", "vy", "radius", "gx", "gy", "v_pref", "heading")
+HUMAN_FIELDS = ("px", "py", "vx", "vy", "radius")
+
+
+def check_states(robot: np.ndarray, humans: np.ndarray) -> None:
+    """``ValueError`` naming the fields (and the humans' rows) of ``robot [9]`` / ``humans [n, 5]`` that
+    are NaN or infinite: the model would turn them into NaN Q values and an arbitrary action."""
+    if robot.shape != (len(ROBOT_FIELDS),):
+        raise ValueError(f"robot: must hold the {len(ROBOT_FIELDS)} values {', '.join(ROBOT_FIELDS)}, got shape {robot.shape}")
+    bad = [name for name, ok in zip(ROBOT_FIELDS, np.isfinite(robot)) if not ok]
+    if bad:
+        raise ValueError(f"robot: {', '.join(bad)} not finite (NaN or inf): {robot.tolist()}; give finite states")
+    rows = [i for i, ok in enumerate(np.isfinite(humans).all(axis=1)) if not ok]
+    if rows:
+        i = rows[0]
+        bad = [name for name, ok in zip(HUMAN_FIELDS, np.isfinite(humans[i])) if not ok]
+        raise ValueError(f"humans: row(s) {rows} not finite (NaN or inf; row {i}: {', '.join(bad)}); give finite "
+                         "states, or leave out a human the robot cannot see")
+
+
 def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
     """The model's inputs for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame,
-    padded with absent rows (``humans_mask`` False) to ``slots`` rows when the model fixes N."""
-    robot_rc, humans_rc = robot_centric(np.asarray(robot, np.float64), np.asarray(humans, np.float64).reshape(-1, 5))
+    padded with absent rows (``humans_mask`` False) to ``slots`` rows when the model fixes N. No human
+    in view (``n = 0``): one absent row (the models are padding-invariant and need a row to run).
+    Non-finite states are refused (:func:`check_states`)."""
+    robot, humans = np.asarray(robot, np.float64), np.asarray(humans, np.float64)
+    if humans.size % len(HUMAN_FIELDS):
+        raise ValueError(f"humans: must be rows of the {len(HUMAN_FIELDS)} values {', '.join(HUMAN_FIELDS)}, "
+                         f"got shape {humans.shape}")
+    humans = humans.reshape(-1, len(HUMAN_FIELDS))
+    check_states(robot, humans)
+    robot_rc, humans_rc = robot_centric(robot, humans)
     n = humans_rc.shape[0]
-    slots = n if slots is None else slots
+    slots = max(n, 1) if slots is None else slots
     if n > slots:
         raise ValueError(f"the model takes at most {slots} humans, got {n}")
     padded = np.zeros((slots, 5))

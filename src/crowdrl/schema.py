@@ -5,6 +5,10 @@ The Hydra commands compose their config onto a schema registered in Hydra's Conf
 ``reproduce``: :class:`crowdrl.reproduction.config.ReproduceConfig`), so Hydra itself refuses an
 unknown key and a value of the wrong type. A key added with ``+key=value`` gets through Hydra's
 composition; :func:`read_typed` reads the composed tree into the schema and refuses it, naming it.
+
+A bool key takes ``true`` or ``false`` only: OmegaConf would turn any integer into a bool (``2`` into
+``true``), so :func:`check_bools` (a tree read into its schema) and :func:`check_bool_overrides` (the
+command line's overrides, which Hydra has already converted) refuse anything else, naming the key.
 """
 
 from __future__ import annotations
@@ -38,6 +42,44 @@ def allowed_keys(schema: type, prefix: str = "") -> list[str]:
     return out
 
 
+def check_bools(typed: Any, raw: Any, prefix: str = "") -> None:
+    """Raise :class:`SchemaError` ``"<key>: must be true or false, got <value>"`` for the first key
+    whose value in ``typed`` (a dataclass instance read from ``raw``) is a bool but whose value in
+    ``raw`` (the mapping it was read from) is not: one OmegaConf converted (``2``, ``"yes"``)."""
+    if not dataclasses.is_dataclass(typed) or not isinstance(raw, Mapping):
+        return
+    for f in dataclasses.fields(typed):
+        if f.name not in raw:
+            continue
+        value, given, key = getattr(typed, f.name), raw[f.name], f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            check_bools(value, given, f"{key}.")
+        elif isinstance(value, bool) and not isinstance(given, bool):
+            raise SchemaError(key, f"must be true or false, got {given!r}")
+
+
+def check_bool_overrides(cfg: DictConfig, overrides: list[str]) -> None:
+    """Raise :class:`SchemaError` naming the key of the first command-line override (Hydra's syntax,
+    ``train.q_layer_norm=2``) that is not ``true`` or ``false`` but that the composed typed ``cfg``
+    holds as a bool: Hydra converted it (``2``, ``yes``, ``'true'``). ``hydra.*``, deletions and
+    interpolations are left to Hydra."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    for override in OverridesParser.create().parse_overrides(list(overrides)):
+        key = override.key_or_group
+        if override.is_delete() or key == "hydra" or key.startswith("hydra.") or "@" in key:
+            continue
+        value = override.value()
+        if isinstance(value, bool) or (isinstance(value, str) and "${" in value):
+            continue
+        try:
+            composed = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
+        except OmegaConfBaseException:
+            continue
+        if isinstance(composed, bool):
+            raise SchemaError(key, f"must be true or false, got {value!r}")
+
+
 def read_typed(schema: type[T], cfg: DictConfig | Mapping[str, Any], *, reader: str, allowed: str | None = None) -> T:
     """``cfg`` (resolved) merged onto ``schema``'s defaults, as a ``schema`` instance.
 
@@ -65,13 +107,15 @@ def read_typed(schema: type[T], cfg: DictConfig | Mapping[str, Any], *, reader: 
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)
     try:
-        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), cfg))  # type: ignore[return-value]
+        typed = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), cfg))
     except OmegaConfBaseException as exc:
         key = str(getattr(exc, "full_key", "") or "")
         if isinstance(exc, ConfigKeyError):
             raise SchemaError(key, f"not read by {reader} (unknown key); "
                                    f"allowed: {allowed or ', '.join(allowed_keys(schema))}") from None
         raise SchemaError(key, str(exc).splitlines()[0]) from None
+    check_bools(typed, cfg)
+    return typed  # type: ignore[return-value]
 
 
-__all__ = ["SchemaError", "allowed_keys", "read_typed"]
+__all__ = ["SchemaError", "allowed_keys", "check_bool_overrides", "check_bools", "read_typed"]

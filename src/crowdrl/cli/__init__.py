@@ -22,18 +22,21 @@ marker, never over a record it did not write in this call (:func:`crowdrl.traini
 Each Hydra command composes its config onto a typed schema registered in Hydra's ConfigStore (the
 first entry of its defaults list: ``train``: :class:`crowdrl.training.config.RunConfig`; ``evaluate``,
 ``export``: :mod:`crowdrl.cli.schemas`; ``reproduce``: :class:`crowdrl.reproduction.config.ReproduceConfig`),
-so Hydra refuses an unknown key or a value of the wrong type, naming it, before anything is written.
+so Hydra refuses an unknown key or a value of the wrong type, naming it, before anything is written;
+a bool key given anything but ``true`` / ``false`` (``2``, which Hydra would store as ``true``) is refused
+the same way (:func:`check_overrides`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
 import re
 import sys
 from pathlib import Path
-from typing import Any, Callable, NoReturn, TypeVar
+from typing import Any, Callable, Iterator, NoReturn, TypeVar
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -156,11 +159,35 @@ def _message_parts(text: str) -> list[str]:
     return [p.replace("{options}", ", ".join(options or [])) if p.endswith("{options}") else p for p in parts]
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """While the block runs, SIGTERM (``kill``, ``timeout``, SLURM) raises ``KeyboardInterrupt`` as Ctrl-C
+    does, so a command stopped either way cleans up the same (exit 130, the folder it made removed while
+    empty); the previous handler is restored after. ``train``'s training loop installs its own handler
+    inside (:func:`crowdrl.training.pipeline.stop_signals`: a checkpoint first). Main thread only."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
 def one_line_errors(module: str, allowed: Callable[[str], str] | None = None) -> Callable[[F], F]:
     """Decorate a command's ``main`` (outside ``@hydra.main``) so that Hydra's and OmegaConf's errors and
     :data:`FOLDER_ERRNOS` end it with one line and exit 2 (:func:`exit_with_error`), and Ctrl-C with
     130. Hydra is told to raise (``HYDRA_FULL_ERROR=1`` while ``main`` runs) instead of printing its
-    own report and exiting 1; anything else propagates as it is. With ``allowed`` (the keys the command
+    own report and exiting 1; anything else propagates as it is. SIGTERM is Ctrl-C while ``main`` runs
+    (:func:`sigterm_as_interrupt`). With ``allowed`` (the keys the command
     reads that a refused key could have meant, as a text, given that key), a key its typed schema lacks
     is refused as ``<key>: not read by <module>.py (unknown key); allowed: <allowed(key)>``
     (:func:`unknown_key`), without Hydra's advice to add it with ``+``."""
@@ -170,7 +197,8 @@ def one_line_errors(module: str, allowed: Callable[[str], str] | None = None) ->
             previous = os.environ.get("HYDRA_FULL_ERROR")
             os.environ["HYDRA_FULL_ERROR"] = "1"
             try:
-                return main(*args, **kwargs)
+                with sigterm_as_interrupt():
+                    return main(*args, **kwargs)
             except KeyboardInterrupt:
                 exit_with_error(module, "interrupted", code=130)
             except Exception as exc:
@@ -193,6 +221,25 @@ def one_line_errors(module: str, allowed: Callable[[str], str] | None = None) ->
     return decorate
 
 
+def check_overrides(module: str, cfg: Any) -> None:
+    """Refuse, before the job reads its config, a command-line override of a bool key that is not
+    ``true`` / ``false`` (``train.q_layer_norm=2``, which Hydra would store as ``true``:
+    :func:`crowdrl.schema.check_bool_overrides`): one line naming the key, exit 2, and the run folder
+    Hydra made for the job removed while empty."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from crowdrl.schema import SchemaError, check_bool_overrides
+
+    hydra_cfg = HydraConfig.get()
+    try:
+        check_bool_overrides(cfg, list(hydra_cfg.overrides.task))
+    except SchemaError as exc:
+        from crowdrl.training.run_folder import discard_new_folders
+
+        discard_new_folders(hydra_cfg.runtime.output_dir)
+        exit_with_error(module, str(exc))
+
+
 def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] | None = None) -> Callable[[F], F]:
     """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
     :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
@@ -206,7 +253,13 @@ def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] |
         from crowdrl.resources import config_dir
 
         hydra_main = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")
-        command = one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(task)))
+
+        @functools.wraps(task)
+        def checked(cfg: Any, *args: Any, **kwargs: Any) -> Any:
+            check_overrides(module, cfg)
+            return task(cfg, *args, **kwargs)
+
+        command = one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(checked)))
 
         @functools.wraps(task)
         def run(*args: Any, **kwargs: Any) -> Any:

@@ -173,3 +173,56 @@ def read_summary(path: Path | str) -> dict[str, Any]:
     if "wall_s" in data and not (_number(data["wall_s"]) and data["wall_s"] >= 0):
         raise RecordError(f"{path}: wall_s: must be a finite number >= 0, got {data['wall_s']!r}")
     return data
+
+
+HUMAN_KEYS_SHOWN = ("human_model", "robot_visible", "social_force_share", "linear_share")  # a crowd changed at test
+
+
+def _run_scenario(run_dir: Path, record: dict[str, Any]) -> Any:
+    """The scenario the run in ``run_dir`` trained (and tested) on: its ``config.yaml``'s, else the record's."""
+    config = run_dir / "config.yaml"
+    if config.is_file():
+        from omegaconf import OmegaConf
+
+        try:
+            return OmegaConf.select(OmegaConf.load(config), "env.scenario", default=None)
+        except Exception:  # a config.yaml that does not parse: the record's own word
+            pass
+    return record.get("train_scenario")
+
+
+def check_against_summary(record: dict[str, Any], path: Path | str, run_dir: Path | str) -> dict[str, Any]:
+    """``record`` (read from ``path``, a test of the run in ``run_dir``) cross-checked against the run's own
+    ``summary.json`` where both describe the same test: the run's best checkpoint (the same
+    ``checkpoint_frames``), its training scenario, the same test seed and number of cases, and the crowd
+    it trained with. Each metric must then agree (to 1e-9); :class:`RecordError` naming both files and the
+    field otherwise (a hand-edited record). A run without ``summary.json``, or a record of another test, is
+    returned as it is."""
+    run_dir = Path(run_dir)
+    summary_path = run_dir / "summary.json"
+    if not summary_path.is_file():
+        return record
+    test = read_summary(summary_path)["test"]
+    metrics = test["metrics"]
+    checkpoint = record.get("checkpoint")
+    same = (record.get("checkpoint_frames") == test.get("checkpoint_frames")
+            and (checkpoint is None or Path(str(checkpoint)).name == "best.pt")
+            and record.get("seed") == test.get("test_seed") and record.get("episodes") == metrics["episodes"]
+            and record.get("scenario") == _run_scenario(run_dir, record)
+            and not any(key in record for key in HUMAN_KEYS_SHOWN))
+    if not same:
+        return record
+    for key, field in REPORT_FIELDS.items():  # the summary.json field of each eval.json metric
+        mine, theirs = record.get(key), metrics.get(field)
+        if (mine is None) != (theirs is None) or (mine is not None and not math.isclose(mine, theirs, rel_tol=1e-9,
+                                                                                           abs_tol=1e-9)):
+            raise RecordError(f"{path}: {key}: {mine!r} disagrees with the run's own {summary_path} (test.metrics."
+                              f"{field}: {theirs!r}) on the same checkpoint, scenario and test cases; the record was "
+                              f"edited or belongs to another run: remove it and rerun to test the run again")
+    return record
+
+
+def read_run_eval_record(path: Path | str, run_dir: Path | str) -> dict[str, Any]:
+    """An ``eval.json`` record of the run in ``run_dir`` read back (:func:`read_eval_record`) and cross-checked
+    against the run's ``summary.json`` (:func:`check_against_summary`)."""
+    return check_against_summary(read_eval_record(path), path, run_dir)

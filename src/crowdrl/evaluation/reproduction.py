@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from crowdrl.evaluation.report import paper_value, read_eval_record, read_summary
+from crowdrl.evaluation.report import paper_value, read_eval_record, read_run_eval_record, read_summary
 from crowdrl.reproduction.plan import DEFAULT_ENCODER, Plan, eval_path
 from crowdrl.tables import interval_cell, markdown_table
 
@@ -17,12 +17,14 @@ METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return"
 
 
 def collect(plan: Plan) -> dict[str, Any]:
-    """Every eval record: ``{method: {scenario: [record per seed]}}`` (ORCA: one record)."""
+    """Every eval record: ``{method: {scenario: [record per seed]}}`` (ORCA: one record); a run's record of
+    the test its ``summary.json`` holds too must agree with it (:func:`~crowdrl.evaluation.report.read_run_eval_record`)."""
     records: dict[str, dict[str, list[dict]]] = {}
     for method in plan.methods:
         for scenario in plan.scenarios:
             records.setdefault(method.name, {})[scenario] = [
-                read_eval_record(eval_path(plan.run_dir(method, s), scenario)) for s in plan.seeds]
+                read_run_eval_record(eval_path(plan.run_dir(method, s), scenario), plan.run_dir(method, s))
+                for s in plan.seeds]
     records["orca"] = {sc: [read_eval_record(plan.out / "orca" / f"eval-{sc}" / "eval.json")]
                        for sc in plan.scenarios}
     return records

@@ -17,6 +17,9 @@ OBSTACLE_SCENARIOS = ("corridor", "doorway", "room")  # static obstacles (crowdr
 OBSTACLE_KEYS = ("corridor_width", "corridor_length", "doorway_gap", "doorway_width", "room_pillars",
                  "room_pillar_min", "room_pillar_max", "orca_time_horizon_obst", "obstacle_tokens")
 LIDAR_KEYS = ("lidar_rays", "lidar_range")  # CrowdConfig's lidar keys (the Hydra env group's, every scenario)
+# At most this many lidar rays: a fine 2-D lidar's resolution (0.35°). The scan is computed against every
+# edge and disc at once ([B, rays, targets] floats per step), so a larger count would exhaust memory.
+MAX_LIDAR_RAYS = 1024
 ORCA_BACKENDS = ("eager", "compiled")  # compiled: crowdrl.sim.orca_compiled (torch.compile, minutes to build)
 # How one human moves (crowdrl.sim.humans); a human's index here is its code in CrowdState.human_model.
 HUMAN_MODELS = ("orca", "social_force", "linear")
@@ -89,7 +92,7 @@ class CrowdConfig:
     # A 2-D lidar scan in the observation (``"lidar"`` ``[B, lidar_rays]``, every scenario; conventions in
     # crowdrl.sim.lidar): lidar_rays rays from the robot's centre, evenly spaced over 360° counter-clockwise
     # from its heading, against the obstacle edges and the humans' discs, clipped at lidar_range metres
-    # (a 4 m range: the circle's radius). 0 rays: no scan.
+    # (a 4 m range: the circle's radius). 0 rays: no scan; at most MAX_LIDAR_RAYS (1024).
     lidar_rays: int = 0
     lidar_range: float = 4.0
     # The robot: the paper's unicycle with 81 discrete actions, or holonomic (a continuous velocity
@@ -139,8 +142,8 @@ class CrowdConfig:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self._check_obstacle_keys()
         self._check_human_keys()
-        if not is_integer(self.lidar_rays) or self.lidar_rays < 0:
-            raise ValueError(f"lidar_rays must be an integer >= 0 (0: no scan), got {self.lidar_rays!r}")
+        if not is_integer(self.lidar_rays) or not 0 <= self.lidar_rays <= MAX_LIDAR_RAYS:
+            raise ValueError(f"lidar_rays must be an integer in 0..{MAX_LIDAR_RAYS} (0: no scan), got {self.lidar_rays!r}")
         if isinstance(self.lidar_range, bool) or not (isinstance(self.lidar_range, (int, float))
                                                       and math.isfinite(self.lidar_range) and self.lidar_range > 0):
             raise ValueError(f"lidar_range must be a finite number > 0, got {self.lidar_range!r}")

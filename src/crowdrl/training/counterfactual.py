@@ -61,6 +61,9 @@ class CounterfactualExperience(UpdatePart):
         seed: seeds the generator of ``actions="random"``.
         reward_bonus: adds an intrinsic bonus to a batch's ``("next", "reward")`` (the run's
             :meth:`~crowdrl.exploration.IntrinsicRewardTransform.add_bonus`, not training the bonus).
+        one_step_key: where the run's buffer keeps the one-step successor ``s_{t+1}`` (n-step returns
+            with an intrinsic bonus: :data:`crowdrl.training.variants.ONE_STEP_KEY`); the
+            counterfactual transitions hold their next observation there too, for the bonus to read.
 
     Example::
 
@@ -71,7 +74,8 @@ class CounterfactualExperience(UpdatePart):
 
     def __init__(self, config: CrowdConfig, net: nn.Module, obs_keys: Sequence[str], *, mode: str = "second_update",
                  actions: str = "topk", k: int = 5, weight: float = 0.5, entities: bool = False, seed: int = 0,
-                 reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None) -> None:
+                 reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None,
+                 one_step_key: str | None = None) -> None:
         if mode not in MODES:
             raise ValueError(f"mode: got {mode!r}; allowed: {', '.join(MODES)}")
         if actions not in ACTIONS:
@@ -89,7 +93,7 @@ class CounterfactualExperience(UpdatePart):
         self.config, self.net, self.obs_keys = config, net, list(obs_keys)
         self.mode, self.actions, self.weight = mode, actions, float(weight)
         self.k = NUM_ACTIONS if actions == "all" else int(k)
-        self.reward_bonus = reward_bonus
+        self.reward_bonus, self.one_step_key = reward_bonus, one_step_key
         self.observe = RobotCentric(entities=entities)
         self.table = action_table(config.robot_v_pref)
         self.has_map = config.obstacles_shape[0] > 0
@@ -183,6 +187,9 @@ class CounterfactualExperience(UpdatePart):
                      "reward": judged.reward.reshape(B, k, *reward.shape[1:]).to(reward.dtype),
                      "terminated": terminated, "done": terminated.clone()},
         }, [B, k], device=sample.device)
+        if self.one_step_key is not None:  # one step: the successor the bonus reads is the next observation
+            for key in self.obs_keys:
+                out.set((self.one_step_key, key), out.get(("next", key)))
         self._scalars = {"counterfactual_collision_rate": float(judged.collided.float().mean()),
                          "counterfactual_goal_rate": float(judged.reached.float().mean()),
                          "counterfactual_reward": float(judged.reward.mean())}

@@ -185,13 +185,15 @@ def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...]
                      reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None) -> UpdatePart:
     """The gradient steps of one update (:mod:`crowdrl.training.parts`): the sampled batch alone, or with
     ``train.counterfactual.mode`` its counterfactual transitions too (``reward_bonus``, the exploration
-    strategy's, added to them)."""
+    strategy's, added to them; with n-step returns it reads their successor under ``ONE_STEP_KEY``, as
+    :func:`make_buffer` stores it)."""
     c = run.train.counterfactual
     if c.mode == "off":
         return ReplayOnly()
+    one_step = ONE_STEP_KEY if reward_bonus is not None and run.train.n_step > 1 else None
     return CounterfactualExperience(crowd, net, keys, mode=c.mode, actions=c.actions, k=c.k, weight=c.weight,
                                     entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1),
-                                    reward_bonus=reward_bonus)
+                                    reward_bonus=reward_bonus, one_step_key=one_step)
 
 
 def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
+from crowdrl.schema import SchemaError, check_bools
 from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.rng import MAX_SEED
@@ -48,11 +49,16 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     if isinstance(cfg, RunConfig):
         cfg = OmegaConf.structured(cfg)
     schema = OmegaConf.structured(RunConfig)
+    raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
     try:
-        merged = OmegaConf.merge(schema, OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg)
+        merged = OmegaConf.merge(schema, raw)
     except Exception as exc:  # omegaconf's messages name the key; keep them
         raise ConfigError(str(exc).splitlines()[0] + _hint(exc)) from None
     run: RunConfig = OmegaConf.to_object(merged)
+    try:  # a bool key given 2 or "yes" (OmegaConf makes any integer a bool): refused, naming it
+        check_bools(run, raw)
+    except SchemaError as exc:
+        raise ConfigError(str(exc)) from None
     for key, value in _floats(run):
         check(math.isfinite(value), key, f"must be a finite number, got {value}")
     e, t, x = run.env, run.train, run.exploration
