@@ -86,7 +86,8 @@ class Ceiling:
         return {"format": FORMAT, "scenario": self.scenario, "split": self.split, "seed": self.seed,
                 "cases": self.cases, "crowd": self.crowd, "settings": self.settings,
                 "solved_by_width": self.solved_by_width, "seconds": self.seconds, "counts": self.counts(),
-                "mean_time": self.mean_time(), "labels": self.labels, "steps": self.steps, "actions": self.actions}
+                "mean_time": self.mean_time(), "labels": list(self.labels), "steps": list(self.steps),
+                "actions": [list(a) for a in self.actions]}  # copies: editing the dict leaves the ceiling as it is
 
 
 def compute_ceiling(cfg: CrowdConfig, *, split: str = "test", seed: int = 0, cases: int = 1000,
