@@ -109,3 +109,26 @@ def test_the_check_off_leaves_the_fingerprint_of_a_run_without_the_key():
     without = {**cfg, "planning": {k: v for k, v in cfg["planning"].items() if k != "safety_horizon"}}
     assert config_fingerprint(cfg) == config_fingerprint(without)
     assert config_fingerprint(to_dict(validate({"planning": {"safety_horizon": 2}}))) != config_fingerprint(cfg)
+
+
+def test_evaluate_acts_with_another_planner_without_retraining():
+    """``eval.planning_depth`` / ``_width`` / ``_safety_horizon``: a checkpoint acts with another planner; the
+    checkpoint's own values give its own numbers; bad values and the ORCA baseline are refused naming the key."""
+    from pathlib import Path
+
+    from crowdrl.training.pipeline import evaluate_spec
+
+    ck = Path(__file__).resolve().parents[1] / "pretrained" / "sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0"
+    common = dict(checkpoint=ck, episodes=4, batch=4, record_episode=None)
+    own, _ = evaluate_spec(**common)
+    same, _ = evaluate_spec(**common, planning={"depth": 1, "width": 10, "safety_horizon": None})
+    assert same["planning_depth"] == 1 and "planning_safety_horizon" not in same
+    assert {k: same[k] for k in own} == own
+    deeper, _ = evaluate_spec(**common, planning={"depth": 2, "safety_horizon": 2})
+    assert deeper["planning_depth"] == 2 and deeper["planning_safety_horizon"] == 2
+    for planning, key in (({"depth": 0}, "eval.planning_depth"), ({"width": 82}, "eval.planning_width"),
+                          ({"safety_horizon": 21}, "eval.planning_safety_horizon")):
+        with pytest.raises(ValueError, match=key):
+            evaluate_spec(**common, planning=planning)
+    with pytest.raises(ValueError, match="eval.planning_depth: the ORCA baseline has no planner"):
+        evaluate_spec(policy="orca", episodes=4, record_episode=None, planning={"depth": 2})

@@ -9,6 +9,7 @@
     python experiments/evaluate.py policy=orca env=square eval.seed=1 eval.episodes=200
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
     python experiments/evaluate.py checkpoint=runs/<folder> eval.ceiling=results/ceiling/circle.json  # gap to it
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.planning_depth=2   # act with a deeper planner
 
 Prints a Markdown table and writes ``eval.json`` / ``eval.csv`` (and a PNG and GIF of
 ``eval.record_episode``) into its Hydra run folder, whose path it prints: a new or empty folder
@@ -127,7 +128,8 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
                                      record_episode=e.record_episode, device=c.device,
                                      human_model=e.human_model, robot_visible=e.robot_visible,
                                      social_force_share=e.social_force_share, linear_share=e.linear_share,
-                                     ceiling=e.ceiling)
+                                     ceiling=e.ceiling, planning={"depth": e.planning_depth, "width": e.planning_width,
+                                                                  "safety_horizon": e.planning_safety_horizon})
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 

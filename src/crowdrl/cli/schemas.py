@@ -35,6 +35,11 @@ class EvalConfig:
     # a ceiling file of the same cases (experiments/ceiling.py): adds avoidable / unavoidable failures and the time
     # over the ceiling to the record
     ceiling: Optional[str] = None
+    # act with another planner than the checkpoint's (no retraining; null: the checkpoint's): its depth, width and
+    # run-time safety check (planning.safety_horizon)
+    planning_depth: Optional[int] = None
+    planning_width: Optional[int] = None
+    planning_safety_horizon: Optional[int] = None
 
 
 @dataclass

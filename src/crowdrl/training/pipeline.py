@@ -15,7 +15,7 @@ from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
-from crowdrl.training.config import EVAL_BATCH, RunConfig, to_dict
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict
 from crowdrl.training.factories import crowd_config, make_actor, make_env
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
@@ -178,6 +178,30 @@ def _eval_crowd(scenario: str, humans: dict[str, Any], *, given: bool = True) ->
                          ) from None
 
 
+ACT_KEYS = ("depth", "width", "safety_horizon")  # the planner settings an evaluation may change (eval.planning_*)
+
+
+def _act_with(run: RunConfig, acting: dict[str, int]) -> RunConfig:
+    """``run`` acting with the planner settings ``acting`` (names in :data:`ACT_KEYS`), checked as train checks
+    them; ``ValueError`` naming ``eval.planning_<key>``."""
+    from dataclasses import replace
+
+    from crowdrl.training.validation import validate
+
+    unknown = sorted(set(acting) - set(ACT_KEYS))
+    if unknown:
+        raise ValueError(f"planning: unknown {unknown}; allowed: {', '.join(ACT_KEYS)}")
+    if not run.planning.enabled:
+        raise ValueError(f"eval.planning_{next(iter(acting))}: the checkpoint acts without planning (planning.enabled "
+                         "was false when it trained)")
+    changed = replace(run, planning=replace(run.planning, **acting))
+    try:
+        validate(changed, resources=False)
+    except ConfigError as exc:
+        raise ValueError(f"eval.{str(exc).replace('planning.', 'planning_', 1)}") from None
+    return changed
+
+
 def _read_ceiling(path: Path | str | None, cfg: CrowdConfig, seed: int, episodes: int):
     """The ceiling file ``path`` if given, checked to label test cases ``0 .. episodes-1`` of ``seed`` under ``cfg``."""
     if path is None:
@@ -213,8 +237,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                   seed: int = TEST_SEED, episodes: int = 1000, num_humans: int | None = None, batch: int = EVAL_BATCH,
                   record_episode: int | None = None, device: str = "cpu", human_model: str | None = None,
                   robot_visible: bool | None = None, social_force_share: float | None = None,
-                  linear_share: float | None = None, ceiling: Path | str | None = None
-                  ) -> tuple[dict[str, Any], Trajectory | None]:
+                  linear_share: float | None = None, ceiling: Path | str | None = None,
+                  planning: dict[str, int] | None = None) -> tuple[dict[str, Any], Trajectory | None]:
     """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
     test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
     recorded trajectory. ``human_model``/``robot_visible`` (``None``: the checkpoint's; ORCA humans blind to
@@ -223,7 +247,9 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     needs ``human_model="mixed"``, given or the checkpoint's). Bad names and values raise ``ValueError`` naming
     the argument. ``ceiling``: a ceiling file of the same test cases (:mod:`crowdrl.evaluation.ceiling`); the
     record then adds the avoidable and unavoidable failures and the time over the ceiling (a file of another
-    stream is refused before anything runs, naming the mismatch)."""
+    stream is refused before anything runs, naming the mismatch). ``planning``: act with these of the
+    checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``; no retraining); the record
+    then shows them."""
     from dataclasses import replace
 
     from crowdrl.evaluation import evaluate_orca
@@ -261,6 +287,9 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         raise ValueError(f"eval.episodes: {episodes} episodes keep ~{kept / 2**30:,.1f} GiB of per-episode records "
                          f"(up to {max_steps} rewards each), more than the {free / 2**30:,.1f} GiB of memory available; "
                          f"lower eval.episodes (another eval.seed gives other cases)")
+    acting = {k: v for k, v in (planning or {}).items() if v is not None}
+    if policy == "orca" and acting:
+        raise ValueError(f"eval.planning_{next(iter(acting))}: the ORCA baseline has no planner")
     if policy == "orca":
         cfg = _eval_crowd(scenario or "circle", humans)
         cfg = replace(cfg, num_humans=num_humans or cfg.num_humans)
@@ -278,6 +307,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         _eval_crowd(scenario or run.env.scenario, trained | humans, given=bool(humans))
     if humans:
         run = replace(run, env=replace(run.env, **humans))
+    if acting:
+        run = _act_with(run, acting)
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
@@ -295,5 +326,6 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                          + ("+planning" if run.planning.enabled else ""),
                          checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed,
+                         **({f"planning_{k}": getattr(run.planning, k) for k in acting}),
                          **(_humans_shown(vars(run.env)) if humans else {}), **_gap_fields(labels, ceiling, metrics))
     return record, traj
