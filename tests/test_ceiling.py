@@ -229,3 +229,14 @@ def test_evaluate_reports_the_gap_and_refuses_a_ceiling_of_other_cases(tmp_path,
                          (dict(num_humans=5), "num_humans")):
         with pytest.raises(ValueError, match=f"eval.ceiling: .*{word}"):
             evaluate_spec(policy="orca", record_episode=None, ceiling=path, **({"episodes": 12} | kwargs))
+
+
+def test_the_ceiling_benchmark_prints_a_table_and_writes_json(tmp_path, capsys):
+    import bench_ceiling
+
+    out = tmp_path / "bench.json"
+    assert bench_ceiling.main(["--cases", "2", "--widths", "16", "--json", str(out)]) == 0
+    assert "min / 1000 cases" in capsys.readouterr().out
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["scenario"] == "circle" and row["cases"] == 2 and row["s_per_case"] > 0
+    assert row["solved"] + row["infeasible"] + row["unknown"] == 2
