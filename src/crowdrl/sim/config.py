@@ -31,6 +31,16 @@ HUMAN_KEYS = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf
 # read only where social-force humans may be present (human_model="social_force", or "mixed" with a social_force_share)
 SOCIAL_FORCE_KEYS = ("sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
 MAX_HUMANS = 64  # spawn rejection sampling is sized for this many; more cannot be placed reliably
+# Spawn feasibility of the obstacle scenarios (CrowdConfig.max_spawnable_humans): the agents' points that one
+# start or goal region must hold, at most this share of its cells (the region grown by the spawn clearance s
+# on each side, in units of s^2); calibrated on 20k-episode spawns at the default geometry (docs/mdp.md), where
+# the bound gives corridor 14, doorway 14, room 18 humans, a few below the first crowds that ever failed
+# (corridor 16, doorway 17, room 24)
+# room: the least chance of a candidate start and goal (clear paths' share times the square left free, squared)
+SPAWN_DENSITY = {"corridor": 0.29, "doorway": 0.10, "room": 0.10}
+# room: K pillars leave the humans' straight crossing paths (1 - d / square_width)^K of the square, d a pillar's
+# largest width plus the obstacle clearance on both sides; pillar centres at most this share of their cells
+PILLAR_DENSITY = 0.5
 
 
 def is_integer(value: object) -> bool:
@@ -271,6 +281,68 @@ class CrowdConfig:
                                  "plus its obstacle clearance on both sides)")
             if self.doorway_width <= self.doorway_gap:
                 raise ValueError(f"doorway_width ({self.doorway_width}) must exceed doorway_gap ({self.doorway_gap})")
+        self._check_spawn_feasible()
+
+    def _check_spawn_feasible(self) -> None:
+        """An obstacle scenario's crowd (and room's pillars) must fit its geometry (:attr:`max_spawnable_humans`,
+        :attr:`pillars_fit`), so that a run is refused at start rather than failing to spawn an episode hours in."""
+        keys = {"corridor": "corridor_width, corridor_length", "doorway": "doorway_gap, doorway_width, square_width",
+                "room": "room_pillars, room_pillar_max, square_width"}[self.scenario]
+        if self.scenario == "room" and not self.pillars_fit:
+            raise ValueError(f"room_pillars ({self.room_pillars}) pillars of sides up to room_pillar_max "
+                             f"({self.room_pillar_max}) m cannot be placed apart in a {self.square_width} m square "
+                             "(square_width); use fewer or smaller pillars or a larger square")
+        bound = self.max_spawnable_humans
+        if self.num_humans > bound:
+            raise ValueError(f"num_humans ({self.num_humans}) cannot be spawned reliably in scenario {self.scenario} "
+                             f"with this geometry ({keys}): at most {bound} humans keep the spawn clearance "
+                             f"({self.spawn_clearance:g} m) and clear straight paths (docs/mdp.md); use fewer humans "
+                             "or roomier obstacles")
+
+    @property
+    def pillars_fit(self) -> bool:
+        """``room``: whether its pillars fit apart: the ``room_pillars`` discs of a pillar's circumradius plus
+        half the passage between pillars hold at most :data:`PILLAR_DENSITY` of the centres' square (grown by
+        that radius on each side)."""
+        radius = self.room_pillar_max / math.sqrt(2) + self.human_radius + self.obstacle_clearance_margin
+        side = self.square_width - 2.0 + 2 * radius
+        return self.room_pillars * (2 * radius) ** 2 <= PILLAR_DENSITY * side * side
+
+    @property
+    def max_spawnable_humans(self) -> int:
+        """The largest crowd that an obstacle scenario spawns reliably (:data:`MAX_HUMANS` in the open ones).
+
+        The agents' points that one start or goal region holds (the busier direction's humans, ``ceil(n / 2)``,
+        plus the robot's start or goal in corridor and doorway; all ``n`` humans plus the robot in room) are at
+        most :data:`SPAWN_DENSITY` of the region's cells, ``(w + s) (l + s) / s^2`` for a ``w x l`` region and the
+        spawn clearance ``s``: corridor, the goal region (``corridor_width`` less the obstacle clearance on both
+        sides, by ``0.4 * corridor_length``); doorway, one side (``min(doorway_width, square_width)`` less the
+        clearances by ``square_width / 2`` less one), times the share of the gap a straight path can use
+        (``doorway_gap`` less the clearances, per the agent's cleared diameter, at most 1). Room: a candidate's
+        chance, the share of crossing paths its pillars leave clear (:data:`PILLAR_DENSITY`'s note) times the
+        square's share left free by the points' discs of radius ``s`` (for its start, then its goal), at least
+        :data:`SPAWN_DENSITY`."""
+        if self.scenario not in OBSTACLE_SCENARIOS:
+            return MAX_HUMANS
+        s, clear = self.spawn_clearance, self.human_radius + self.obstacle_clearance_margin
+        density = SPAWN_DENSITY[self.scenario]
+        if self.scenario == "corridor":
+            cells = (self.corridor_width - 2 * clear + s) * (0.4 * self.corridor_length + s) / s**2
+        elif self.scenario == "doorway":
+            width = min(self.doorway_width, self.square_width) - 2 * clear
+            window = min(1.0, (self.doorway_gap - 2 * clear) / (2 * clear))
+            cells = (width + s) * (self.square_width / 2 - clear + s) / s**2 * window
+        else:  # a candidate's chance: the clear paths' share times the square's share the others leave (start, goal)
+            blocked = self.room_pillar_max * math.sqrt(2) + 2 * clear
+            clear_paths = max(0.0, 1.0 - blocked / self.square_width) ** self.room_pillars
+            if clear_paths <= density:
+                return 0
+            free = 1.0 - math.sqrt(density / clear_paths)  # the share of the square the agents' discs may exclude
+            cells = free * (self.square_width + s) ** 2 / (math.pi * s**2)
+            density = 1.0
+        points = math.floor(density * cells + 1e-9)
+        humans = points - 1 if self.scenario == "room" else 2 * (points - 1)  # room: all n share it; else ceil(n/2)
+        return max(0, min(MAX_HUMANS, humans))
 
     @property
     def obstacles_shape(self) -> tuple[int, int]:

@@ -72,7 +72,9 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
           f"need min_humans <= max_humans, got {low} > {high} (each defaults to env.num_humans = {e.num_humans})")
     one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
     try:  # the obstacle geometry, the lidar, the humans' model: CrowdConfig's checks, whose messages start with the key
-        CrowdConfig(scenario=e.scenario, **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
+        # the largest crowd too: an obstacle scenario refuses one its geometry cannot spawn reliably
+        CrowdConfig(scenario=e.scenario, num_humans=high,
+                    **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
