@@ -250,10 +250,18 @@ BONUS_OPTIONS = {"reward_norm": "std", "reward_center": True, "reward_clip": 3.0
                  "terminal_value": True, "icm_feature_norm": "layernorm", "beta_schedule": "exp", "beta_decay": 1e-3}
 
 
+# counterfactual experience: its later batch's loss (train/loss_counterfactual) is a mean over the updates
+# since the last logged row, which a checkpoint between two rows must carry
+COUNTERFACTUAL = {"mode": "second_update", "actions": "random", "k": 3}
+
+
 def _exact_run(name: str) -> RunConfig:
     cfg = json.loads(json.dumps(EXACT))
     options = BONUS_OPTIONS if name.endswith("+options") else {}
-    cfg["exploration"] = {"name": name.removesuffix("+options"), "anneal_frames": 288, **options}
+    if name.endswith("+counterfactual"):
+        cfg["train"]["counterfactual"] = COUNTERFACTUAL
+    cfg["exploration"] = {"name": name.removesuffix("+options").removesuffix("+counterfactual"), "anneal_frames": 288,
+                          **options}
     return validate(cfg)
 
 
@@ -269,12 +277,13 @@ def _final(run_dir: Path) -> tuple[dict, dict, list]:
 # ICM with the bonus options carries the most state (its networks, its optimizer, the one-step
 # successors, the normalisers' statistics); the others run in make test-slow, and
 # tests/test_training.py's slow test kills a real train.py process with SIGKILL.
-@pytest.mark.parametrize("name", ["icm+options", *[pytest.param(n, marks=pytest.mark.slow)
+@pytest.mark.parametrize("name", ["icm+options", "egreedy+counterfactual", *[pytest.param(n, marks=pytest.mark.slow)
                                                    for n in ("icm", "egreedy", "noisy", "dropout", "re3")]])
 def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, name):
     """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
     resumed by a new trainer: the same final weights (online, target, optimizer), the same test
-    metrics and the same logged rows (time columns aside) as the run that was never stopped."""
+    metrics and the same logged rows (every column but the wall-clock time/ ones: with counterfactual experience
+    its train/counterfactual_* and train/loss_counterfactual too) as the run that was never stopped."""
     from crowdrl_testing import train_until_killed
     from crowdrl.training.pipeline import run_training
 
@@ -292,7 +301,12 @@ def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrup
     differing = [k for k in ref_weights if not torch.equal(ref_weights[k], weights[k])]
     assert not differing, f"weights differ after the resume: {differing[:5]}"
     assert metrics == ref_metrics
-    assert rows == ref_rows
+    assert [sorted(r) for r in rows] == [sorted(r) for r in ref_rows]
+    differing = [(i, k, ref[k], row[k]) for i, (ref, row) in enumerate(zip(ref_rows, rows)) for k in ref
+                 if ref[k] != row[k] and not (ref[k] != ref[k] and row[k] != row[k])]  # NaN == NaN here
+    assert not differing, f"logged rows differ after the resume (row, column, uninterrupted, resumed): {differing[:5]}"
+    if name.endswith("+counterfactual"):
+        assert any("train/loss_counterfactual" in r for r in rows)
 
 
 def test_logger_wandb_mirrors_the_scalars_into_an_offline_run_whose_id_the_checkpoint_keeps(tmp_path):

@@ -121,10 +121,12 @@ class CounterfactualExperience(UpdatePart):
         return dict(self._scalars)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"generator": self.generator.get_state()}
+        # the last update's scalars reach the next logged row, even one logged before any update of a resumed run
+        return {"generator": self.generator.get_state(), "scalars": dict(self._scalars)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.generator.set_state(state["generator"])
+        self._scalars = {str(k): float(v) for k, v in state.get("scalars", {}).items()}  # older checkpoints: none
 
     # ------------------------------------------------------------------ the transitions
     @torch.no_grad()

@@ -171,6 +171,8 @@ class Trainer:
             # for an exact resume: the in-flight episodes, the finished ones not yet logged
             "env": self.env.base_env.snapshot() if self.env.base_env.state is not None else None,
             "pending_episodes": list(self._pending_episodes),
+            # the later batches' losses since the last logged row (train/loss_<part>): its mean spans the resume
+            "part_losses": {name: list(values) for name, values in self._part_losses.items()},
             "update_part": self.update_part.state_dict(),
         }
         # the strategy's and the learners' own top-level keys
@@ -189,6 +191,8 @@ class Trainer:
         self.counters = Counters.from_dict(data["counters"])
         self._set_rng(data)
         self._pending_episodes = [tuple(e) for e in data["pending_episodes"]]  # (event, return, steps, goal distance)
+        # a checkpoint written before the key kept none: read as empty
+        self._part_losses = {str(name): [float(v) for v in values] for name, values in data.get("part_losses", {}).items()}
         self.update_part.load_state_dict(data.get("update_part", {}))  # a checkpoint before parts: none had state
         for part in (self.strategy, *self.learners):
             part.load_state_dict(data)
