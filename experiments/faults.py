@@ -123,8 +123,25 @@ def nothing_overwritten(scratch: Path, done: Path, record: Callable[[str, str, s
 
 
 def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None]) -> None:
-    """Issue 52, D2-D15: values refused at start naming the key (no folder), SIGTERM to evaluate.py handled
-    as Ctrl-C, a combination that crashed at its first update now trains, a hand-edited record refused."""
+    """Issue 52, D1-D15: values refused at start naming the key (no folder), SIGTERM to evaluate.py handled
+    as Ctrl-C, a combination that crashed at its first update now trains, a hand-edited record refused, the
+    Gymnasium face's bad options and actions refused."""
+    for i, (name, args, words) in enumerate((("train", [*SMOKE, "env=room", "env.room_pillars=1000"], ["env.room_pillars (1000)"]),
+                              ("train", [*SMOKE, "env=room", "env.room_pillar_min=5", "env.room_pillar_max=20"],
+                               ["env.room_pillars"]),
+                              ("train", [*SMOKE, "env=room", "env.num_humans=64"], ["env.num_humans (64)", "at most 18"]),
+                              ("train", [*SMOKE, "env=corridor", "env.num_humans=19"], ["env.num_humans (19)", "at most 14"]),
+                              ("train", [*SMOKE, "env=doorway", "env.num_humans=64"], ["env.num_humans (64)", "at most 14"]),
+                              ("evaluate", ["policy=orca", "env=corridor", "eval.num_humans=19"],
+                               ["num_humans (19)", "at most 14"]))):
+        where = scratch / f"cli-d1-{i}"
+        where.mkdir()
+        proc = cli(name, *args, cwd=where)
+        shown = " ".join(a for a in args if a not in SMOKE)
+        record(f"{name}.py {shown}", "exit 2 at start naming the key and the largest crowd, no folder",
+               f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}",
+               one_line_exit_2(proc, *words) and not any(where.iterdir()))
+    gymnasium_face(record)
     for override, words in (("env.lidar_rays=100000000", ["env.lidar_rays", "0..1024"]),
                             ("train.q_layer_norm=2", ["train.q_layer_norm: must be true or false, got 2"])):
         folder = scratch / override.replace("=", "-")
@@ -165,6 +182,41 @@ def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None
         ok, observed = False, f"the first reproduce.py failed: exit {first.returncode}: {last_line(first.stderr)}"
     record("reproduce.py rerun, a run's eval-circle/eval.json hand-edited (in range)",
            "exit 2 naming the file and its summary.json, table.md unchanged", observed, ok)
+
+
+def gymnasium_face(record: Callable[[str, str, str, bool], None]) -> None:
+    """Issue 52, D11-D12: the Gymnasium env refuses an episode id past int64, unknown reset options and a
+    complex (or boolean) holonomic velocity, naming them, in one ValueError."""
+    import gymnasium as gym
+    import numpy as np
+
+    import crowdrl  # noqa: F401  (registers the ids)
+
+    def refused(call: Callable[[], object], *words: str) -> tuple[bool, str]:
+        try:
+            call()
+        except ValueError as exc:
+            return all(w in str(exc) for w in words), f"ValueError: {str(exc)[:80]}"
+        except Exception as exc:  # noqa: BLE001  (any other error is the defect)
+            return False, f"{type(exc).__name__}: {str(exc)[:80]}"
+        return False, "accepted"
+
+    env = gym.make("crowdrl/CircleCrossing-v0").unwrapped
+    for options, words in (({"episode_id": 2**63}, ["options['episode_id']", "0..2**63-1"]),
+                           ({"episod_id": 3}, ["unknown key(s) 'episod_id'"]), ("junk", ["options must be"]),
+                           ([1, 2], ["options must be"])):
+        ok, observed = refused(lambda: env.reset(seed=0, options=options), *words)
+        record(f"Gymnasium reset(options={options!r})", "ValueError naming the option", observed, ok)
+    hol = gym.make("crowdrl/CircleCrossing-v0", robot_kinematics="holonomic").unwrapped
+    hol.reset(seed=0)
+    ok, observed = refused(lambda: hol.step(np.array([1 + 1j, 0])), "finite real velocity")
+    record("holonomic Gymnasium step(np.array([1+1j, 0]))", "ValueError: a finite real velocity", observed, ok)
+
+
+def scalar_rows(folder: Path) -> list[dict]:
+    """The logged rows of a run, its wall-clock ``time/`` columns aside."""
+    return [{k: v for k, v in json.loads(line).items() if not k.startswith("time/")}
+            for line in (folder / "scalars.jsonl").read_text().splitlines()]
 
 
 def kill_when_checkpointed(args: list[str], folder: Path, sig: signal.Signals, at_frames: int) -> int:
@@ -327,6 +379,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
                f"exit {proc.returncode}, weights {'same' if same_weights else 'DIFFER'}, "
                f"metrics {'same' if same_metrics else 'DIFFER'}, temporary {'left' if stale.exists() else 'gone'}",
                proc.returncode == 0 and same_weights and same_metrics and not stale.exists())
+
+    # issue 52 D3: with counterfactual experience, every logged column (its losses and scalars too) survives a kill
+    cf = [*exact, "train.counterfactual.mode=second_update"]
+    ref = scratch / "uninterrupted-counterfactual"
+    train(*cf, f"hydra.run.dir={ref}")
+    folder = scratch / "killed-counterfactual"
+    frames = kill_when_checkpointed(cf, folder, signal.SIGKILL, at_frames=192)
+    proc = train(f"resume={folder}")
+    same_weights, same_metrics = same_result(ref, folder)
+    rows_equal = scalar_rows(ref) == scalar_rows(folder)
+    record(f"SIGKILL at frame >= {frames} with counterfactual experience, resume",
+           "bit-identical weights, test metrics and every logged column but time/",
+           f"exit {proc.returncode}, weights {'same' if same_weights else 'DIFFER'}, metrics "
+           f"{'same' if same_metrics else 'DIFFER'}, rows {'same' if rows_equal else 'DIFFER'}",
+           proc.returncode == 0 and same_weights and same_metrics and rows_equal)
 
     shutil.rmtree(scratch, ignore_errors=True)
     emit(rows, columns=[Column("fault"), Column("expected"), Column("ok"), Column("observed")], as_json=args.json,
