@@ -255,7 +255,7 @@ def same_result(a: Path, b: Path) -> tuple[bool, bool]:
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_json_argument(p)
-    args = p.parse_args(argv)
+    opts = p.parse_args(argv)
     rows: list[dict] = []
     scratch = Path(tempfile.mkdtemp(prefix="crowdrl-faults-"))
 
@@ -396,7 +396,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
            proc.returncode == 0 and same_weights and same_metrics and rows_equal)
 
     shutil.rmtree(scratch, ignore_errors=True)
-    emit(rows, columns=[Column("fault"), Column("expected"), Column("ok"), Column("observed")], as_json=args.json,
+    emit(rows, columns=[Column("fault"), Column("expected"), Column("ok"), Column("observed")], as_json=opts.json,
          meta={"all_ok": all(r["ok"] for r in rows)},
          title="Faults injected into train.py (smoke budget): what was expected, what happened")
     return rows

@@ -187,11 +187,15 @@ def test_humans_that_react_to_the_robot_are_refused_naming_the_key():
 
 
 def test_off_keeps_the_fingerprint_of_runs_recorded_before_the_key():
-    off = to_dict(validate({}, resources=False))
-    older = {**off, "train": {k: v for k, v in off["train"].items() if k != "counterfactual"}}
+    """Off (and hard target copies) is what a run recorded before the keys trained: its fingerprint is theirs,
+    though today's defaults are the recommended learner (on, Polyak)."""
+    off = to_dict(validate({"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}, resources=False))
+    older = {**off, "train": {k: v for k, v in off["train"].items() if k not in ("counterfactual", "target_tau")}}
     assert config_fingerprint(off) == config_fingerprint(older)
-    on = to_dict(validate({"train": {"counterfactual": {"mode": "second_update"}}}, resources=False))
+    on = to_dict(validate({"train": {"counterfactual": {"mode": "second_update"}, "target_tau": 1.0}}, resources=False))
     assert config_fingerprint(on) != config_fingerprint(off)
+    assert config_fingerprint(to_dict(validate({}, resources=False))) not in (config_fingerprint(on),
+                                                                             config_fingerprint(off))
 
 
 def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(tmp_path):
@@ -204,12 +208,21 @@ def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(t
     cfg.pop("hydra")
     cfg.pop("defaults")  # its typed schema, reproduce_schema
     cfg["out"] = str(tmp_path)
-    plan = make_plan(cfg)
-    assert plan.manifest()["counterfactual"]["mode"] == "off"
-    assert not any("counterfactual" in o for o in run_overrides(plan, plan.methods[0]))
+    plan = make_plan(cfg)  # the budget's learner: the recommended one, stated to every run
+    assert plan.manifest()["counterfactual"] == {"mode": "second_update", "actions": "topk", "k": 5, "weight": 0.5}
+    assert {"train.counterfactual.mode=second_update", "train.target_tau=0.005"} <= set(run_overrides(plan, plan.methods[0]))
+    plain = make_plan({**cfg, "train_learner": "plain"})  # the tables recorded before issue 50
+    assert plain.manifest()["counterfactual"]["mode"] == "off" and plain.manifest()["levers"]["target_tau"] == 1.0
+    overrides = run_overrides(plain, plain.methods[0])
+    assert "train.counterfactual.mode=off" in overrides and "train.target_tau=1.0" in overrides
+    assert [o for o in overrides if "counterfactual" in o] == ["train.counterfactual.mode=off"]
+    paper = make_plan({**cfg, "budget": "paper"})  # preset=paper's learner: hard copies
+    assert paper.manifest()["counterfactual"]["mode"] == "second_update" and paper.manifest()["levers"]["target_tau"] == 1.0
     plan = make_plan({**cfg, "counterfactual": {"mode": "second_update", "k": 3}})
     assert plan.manifest()["counterfactual"] == {"mode": "second_update", "actions": "topk", "k": 3, "weight": 0.5}
     assert "train.counterfactual.k=3" in run_overrides(plan, plan.methods[0])
+    with pytest.raises(PlanError, match="^train_learner: unknown 'best'; allowed: paper, plain, recommended"):
+        make_plan({**cfg, "train_learner": "best"})
     with pytest.raises(PlanError, match="counterfactual"):
         make_plan({**cfg, "counterfactual": {"modes": "merged"}})
 
@@ -224,16 +237,16 @@ def test_reproduce_gives_the_stability_levers_to_every_run_and_names_them_in_its
     cfg.pop("hydra")
     cfg.pop("defaults")
     cfg.update(out=str(tmp_path), budget="smoke", variants=["egreedy"])
-    off = make_plan(cfg)
+    off = make_plan({**cfg, "train_learner": "plain"})
     from crowdrl.reproduction.plan import LEVERS_OFF
     from crowdrl.training.config import LEVER_KEYS, TrainConfig
 
-    assert LEVERS_OFF == {key: getattr(TrainConfig, key) for key in LEVER_KEYS}  # reproduce's levers are train's
-    assert not any(o.startswith("train.") and "counterfactual" not in o and "test_episodes" not in o
-                   for o in run_overrides(off, off.methods[0]))  # at the defaults: the runs' overrides as before
+    assert set(LEVERS_OFF) == set(LEVER_KEYS) and all(hasattr(TrainConfig, k) for k in LEVER_KEYS)
+    assert [o for o in run_overrides(off, off.methods[0]) if o.startswith("train.") and "counterfactual" not in o
+            and "test_episodes" not in o] == ["train.target_tau=1.0"]  # every lever off: hard copies stated
     assert off.manifest()["levers"] == {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None,
                                         "lr_end": None, "q_layer_norm": False}
-    on = make_plan({**cfg, "train": {"target_tau": 0.005, "huber_delta": 1.0, "q_layer_norm": True}})
+    on = make_plan({**cfg, "train_learner": "plain", "train": {"target_tau": 0.005, "huber_delta": 1.0, "q_layer_norm": True}})
     overrides = run_overrides(on, on.methods[0])
     assert {"train.target_tau=0.005", "train.huber_delta=1.0", "train.q_layer_norm=true"} <= set(overrides)
     check_runs(on)  # train.py takes them

@@ -70,11 +70,39 @@ def test_a_stored_config_that_predates_a_changed_default_keeps_what_it_ran_with(
     saved = OmegaConf.to_container(OmegaConf.structured(RunConfig()))
     del saved["planning"]  # written before the planning key existed: trained without planning
     del saved["train"]["compile_acting"]
+    del saved["train"]["target_tau"]  # ... before the levers and counterfactual experience: the plain learner
+    del saved["train"]["counterfactual"]
     run = validate(stored_config(saved), resources=False)
     assert not run.planning.enabled and not run.train.compile_acting
-    assert STORED_DEFAULTS == {"planning": {"enabled": False}, "train": {"compile_acting": False}}
+    assert run.train.counterfactual.mode == "off" and run.train.target_tau == 1.0
+    assert STORED_DEFAULTS == {"planning": {"enabled": False}, "train": {
+        "compile_acting": False, "counterfactual": {"mode": "off"}, "target_tau": 1.0}}
     stated = OmegaConf.to_container(OmegaConf.structured(RunConfig()))  # a key it states: kept
     assert validate(stored_config(stated), resources=False).planning.enabled
+
+
+def test_the_default_learner_is_the_recommended_one_and_the_others_are_one_override_away():
+    """Issue 50: train's defaults (schema and conf/) train counterfactual experience with Polyak targets;
+    preset=paper is the paper's learner (top-5 second update, hard copies); learner=plain the old default."""
+    from crowdrl.training.learners import learner_of_preset, learner_settings, learners
+
+    run = RunConfig()
+    assert (run.train.counterfactual.mode, run.train.counterfactual.actions, run.train.counterfactual.k,
+            run.train.target_tau) == ("second_update", "topk", 5, 0.005)
+    for preset in ("demo", "episodes", "smoke"):
+        train = _compose(f"preset={preset}")["train"]
+        assert (train["counterfactual"]["mode"], train["target_tau"]) == ("second_update", 0.005), preset
+    paper = _compose("preset=paper")["train"]
+    assert (paper["counterfactual"]["mode"], paper["counterfactual"]["k"], paper["target_tau"]) == ("second_update", 5, 1.0)
+    for overrides in (["learner=plain"], ["preset=paper", "learner=plain"], ["learner=plain", "preset=episodes"]):
+        train = _compose(*overrides)["train"]
+        assert (train["counterfactual"]["mode"], train["target_tau"]) == ("off", 1.0), overrides
+    assert _compose("preset=paper", "train.target_tau=0.01")["train"]["target_tau"] == 0.01  # a key over the learner
+    assert learners() == ("paper", "plain", "recommended")
+    assert [learner_of_preset(p) for p in ("demo", "episodes", "paper", "smoke")] == ["recommended", "recommended",
+                                                                                      "paper", "recommended"]
+    assert learner_settings("recommended") == {"counterfactual": {"mode": "second_update", "actions": "topk", "k": 5},
+                                               "target_tau": 0.005}
 
 
 def test_the_demo_command_compiles_the_acting_network_at_the_demo_preset_only():

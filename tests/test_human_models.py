@@ -151,18 +151,19 @@ def test_the_run_config_takes_the_keys_and_a_run_at_their_defaults_keeps_its_fin
     from crowdrl.training.config import ConfigError, to_dict
     from crowdrl.training.factories import crowd_config
 
-    now = to_dict(validate({}, resources=False))
+    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}  # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    now = to_dict(validate(plain, resources=False))
     new_keys = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
     before = {**now, "env": {k: v for k, v in now["env"].items() if k not in new_keys}}
     assert config_fingerprint(now) == config_fingerprint(before)
     # the social-force parameters count only for social-force humans
-    assert config_fingerprint(to_dict(validate({"env": {"sf_tau": 0.3}}, resources=False))) == config_fingerprint(now)
-    changed = [to_dict(validate({"env": e}, resources=False)) for e in (
+    assert config_fingerprint(to_dict(validate({"env": {"sf_tau": 0.3}, **plain}, resources=False))) == config_fingerprint(now)
+    changed = [to_dict(validate({"env": e, **plain}, resources=False)) for e in (
         {"human_model": "social_force"}, {"robot_visible": True}, {"human_model": "linear"},
         {"human_model": "social_force", "sf_tau": 0.3})]
     prints = {config_fingerprint(c) for c in changed} | {config_fingerprint(now)}
     assert len(prints) == 5
-    run = validate({"env": {"human_model": "social_force", "robot_visible": True, "sf_substeps": 4}}, resources=False)
+    run = validate({"env": {"human_model": "social_force", "robot_visible": True, "sf_substeps": 4}, **plain}, resources=False)
     cfg = crowd_config(run)
     assert (cfg.human_model, cfg.robot_visible, cfg.sf_substeps) == ("social_force", True, 4)
     for env, key in (({"human_model": "helbing"}, "env.human_model"), ({"sf_sigma": 0.0}, "env.sf_sigma"),

@@ -229,18 +229,19 @@ def test_the_run_config_takes_the_shares_and_the_default_fingerprint_is_unchange
     from crowdrl.training.config import ConfigError, to_dict
     from crowdrl.training.factories import crowd_config
 
-    now = to_dict(validate({}, resources=False))
+    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}  # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    now = to_dict(validate(plain, resources=False))
     before = {**now, "env": {k: v for k, v in now["env"].items() if k not in ("social_force_share", "linear_share")}}
     assert config_fingerprint(now) == config_fingerprint(before)
     mixed = {"human_model": "mixed", "social_force_share": 0.3, "linear_share": 0.2}
-    runs = [to_dict(validate({"env": e}, resources=False)) for e in (
+    runs = [to_dict(validate({"env": e, **plain}, resources=False)) for e in (
         mixed, {**mixed, "linear_share": 0.25}, {**mixed, "robot_visible": True}, {**mixed, "sf_tau": 0.3},
         {"human_model": "mixed"}, {"human_model": "mixed", "linear_share": 0.2})]
     prints = [config_fingerprint(r) for r in runs]
     assert len(set(prints) | {config_fingerprint(now)}) == 7
     # the social-force parameters count only where social-force humans may be present
     no_sf = {"human_model": "mixed", "linear_share": 0.2}
-    assert config_fingerprint(to_dict(validate({"env": {**no_sf, "sf_tau": 0.3}}, resources=False))) == prints[5]
+    assert config_fingerprint(to_dict(validate({"env": {**no_sf, "sf_tau": 0.3}, **plain}, resources=False))) == prints[5]
     cfg = crowd_config(validate({"env": {**mixed, "min_humans": 4}}, resources=False))
     assert (cfg.human_model, cfg.social_force_share, cfg.linear_share, cfg.min_humans) == ("mixed", 0.3, 0.2, 4)
     for env, key in (({"human_model": "mixed", "linear_share": 1.2}, "env.linear_share"),

@@ -259,17 +259,22 @@ def test_the_resource_checks_compare_with_the_memory_available(monkeypatch):
 
 
 @pytest.mark.parametrize("overrides", [["planning.enabled=false"], ["planning.enabled=true"],
-                                       ["planning.enabled=false", "env.min_humans=5", "env.max_humans=20"]])
+                                       ["planning.enabled=false", "env.min_humans=5", "env.max_humans=20"],
+                                       ["planning.enabled=false", "learner=plain"], ["learner=plain"]])
 def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
-    """The estimate behind train.buffer_size's bound, against a real buffer's stored transition."""
+    """The estimate behind train.buffer_size's bound, against a real buffer's stored transition (the keys the
+    trainer stores: the networks', the predictor's, the counterfactual experience's)."""
+    from crowdrl.models import make_q_network
     from crowdrl.training.config import transition_bytes
-    from crowdrl.training.factories import crowd_config, make_buffer, make_env, obs_keys, stored_keys
+    from crowdrl.training.factories import crowd_config, make_buffer, make_env, make_update_part, obs_keys, stored_keys
 
     run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))
     keys = obs_keys(crowd_config(run))
     batch = make_env(run).rollout(3, break_when_any_done=False)
     buffer = make_buffer(run, keys=keys)
-    buffer.extend(batch.select(*stored_keys(run, keys)))
+    part = make_update_part(run, make_q_network(run.encoder.name), keys, crowd_config(run))
+    stored = stored_keys(run, keys)
+    buffer.extend(batch.select(*stored, *[k for k in part.stored_keys() if k not in stored]))
     one = buffer.storage[0]
     assert transition_bytes(run) == sum(v.numel() * v.element_size() for v in one.values(True, True))
 

@@ -16,13 +16,13 @@ LEVERS = {"target_tau": 0.01, "huber_delta": 1.0, "grad_clip_norm": 5.0, "lr_end
 
 
 def test_levers_at_their_defaults_keep_the_fingerprint_and_each_one_set_changes_it():
-    base = validate({}, resources=False)
+    base = validate({"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}, resources=False)  # every lever off: the learner the keys were recorded with
     stored = to_dict(base)
     for key in LEVERS:  # a config recorded before the keys
         stored["train"].pop(key)
     assert config_fingerprint(stored) == config_fingerprint(to_dict(base))
     for key, value in LEVERS.items():
-        run = validate({"train": {key: value}}, resources=False)
+        run = validate({"train": {**to_dict(base)["train"], key: value}}, resources=False)
         assert config_fingerprint(to_dict(run)) != config_fingerprint(to_dict(base)), key
 
 

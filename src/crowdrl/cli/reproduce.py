@@ -245,10 +245,11 @@ def allowed_hint(key: str = "") -> str:
 
     return ", ".join(allowed_keys(ReproduceConfig))
 
-# the default out= keeps planning and plain tables apart: results/<budget>-planning, results/<budget>
-if not OmegaConf.has_resolver("crowdrl_counterfactual_suffix"):
-    OmegaConf.register_new_resolver("crowdrl_counterfactual_suffix",
-                                    lambda mode: "" if mode in (None, "off") else "-counterfactual")
+# the default out= names the learner: results/<budget>[-planning][-counterfactual][-polyak]
+if not OmegaConf.has_resolver("crowdrl_learner_suffix"):
+    from crowdrl.reproduction.plan import learner_suffix
+
+    OmegaConf.register_new_resolver("crowdrl_learner_suffix", learner_suffix)
 if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
 

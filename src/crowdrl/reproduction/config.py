@@ -14,17 +14,28 @@ from typing import List, Optional
 
 from omegaconf import MISSING
 
-from crowdrl.training.config import CounterfactualConfig, TrainConfig
+from crowdrl.training.config import TrainConfig
+
+
+@dataclass
+class LearnerCounterfactualConfig:
+    """Every run's ``train.counterfactual``: ``train.py``'s keys and meanings; ``mode`` null takes the
+    learner's (:attr:`ReproduceConfig.train_learner`)."""
+
+    mode: Optional[str] = None  # off | second_update | merged (null: the learner's)
+    actions: str = "topk"
+    k: int = 5
+    weight: float = 0.5
 
 
 @dataclass
 class LeverConfig:
     """The stability levers every run of a reproduction trains with: ``train.py``'s ``train.*`` keys of
-    the same names and meanings (``conf/config.yaml``), each off at its default (the paper's
-    learner). Only the values that differ from the default reach the runs, so a folder made before
-    this section keeps its manifest."""
+    the same names and meanings; ``target_tau`` null takes the learner's (0.005 recommended, 1.0 hard
+    copies), the others are off by default. A manifest written before this section ran with every lever
+    off (``LEVERS_OFF``)."""
 
-    target_tau: float = TrainConfig.target_tau  # Polyak target updates after every update (1: hard copies)
+    target_tau: Optional[float] = None  # Polyak target updates after every update (1: hard copies; null: the learner's)
     huber_delta: Optional[float] = TrainConfig.huber_delta  # a Huber loss of this delta (null: squared error)
     grad_clip_norm: Optional[float] = TrainConfig.grad_clip_norm  # the Q gradients' norm clipped (null: not)
     lr_end: Optional[float] = TrainConfig.lr_end  # the learning rate decayed linearly to this (null: constant)
@@ -34,7 +45,7 @@ class LeverConfig:
 @dataclass
 class ReproduceConfig:
     """One reproduction's settings; the defaults are ``conf/reproduce.yaml``'s (``out`` comes from it:
-    ``results/<budget>`` plus the planning and counterfactual suffixes)."""
+    ``results/<budget>`` plus the planning, counterfactual and Polyak suffixes: the learner that ran)."""
 
     budget: str = "smoke"  # conf/preset/<budget>.yaml: the budget every run trains with
     encoders: List[str] = field(default_factory=lambda: ["sgd3qn"])  # each variant is trained with each encoder
@@ -48,7 +59,10 @@ class ReproduceConfig:
     threads: int = 1  # torch threads per run
     reps: int = 2000  # bootstrap resamples for the confidence intervals
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled)
-    counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)  # every run's train.counterfactual
+    # every run's learner (conf/learner/): recommended | paper | plain; null: the budget preset's (paper for
+    # budget=paper, else recommended); counterfactual.* and train.* below set its keys one by one
+    train_learner: Optional[str] = None
+    counterfactual: LearnerCounterfactualConfig = field(default_factory=LearnerCounterfactualConfig)  # train.counterfactual
     train: LeverConfig = field(default_factory=LeverConfig)  # every run's stability levers (train.target_tau, ...)
     # a folder of ceiling files <scenario>.json (experiments/ceiling.py, test seed 0, `episodes` cases): the table adds
     # each method's failures where a path exists and its time over the ceiling, and a ceiling row (null: none)
@@ -56,4 +70,4 @@ class ReproduceConfig:
     out: str = MISSING  # the results folder
 
 
-__all__ = ["LeverConfig", "ReproduceConfig"]
+__all__ = ["LearnerCounterfactualConfig", "LeverConfig", "ReproduceConfig"]

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from crowdrl.reproduction.config import LeverConfig, ReproduceConfig
+from crowdrl.reproduction.config import ReproduceConfig
 from crowdrl.resources import config_dir
-from crowdrl.training.config import CounterfactualConfig
+from crowdrl.training.config import COUNTERFACTUAL_OFF, LEVERS_OFF
 
 CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
@@ -19,8 +19,8 @@ LAUNCHERS = ("local", "slurm")
 MANIFEST_FORMAT = 1
 OUT_MARKER = "manifest.json"  # written into out= under its lock by the first reproduce.py call: the folder is its own
 KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
-COUNTERFACTUAL_OFF = dataclasses.asdict(CounterfactualConfig())  # train.counterfactual's defaults
-LEVERS_OFF = dataclasses.asdict(LeverConfig())  # the stability levers' defaults (the paper's learner)
+# a manifest written before its counterfactual and levers keys: its runs trained without counterfactual
+# experience and with every lever off (COUNTERFACTUAL_OFF, LEVERS_OFF: the plain learner, train's defaults then)
 
 
 class PlanError(ValueError):
@@ -76,11 +76,21 @@ class Plan:
         return path if path.is_file() else None
 
     def lever_overrides(self) -> list[str]:
-        """``train.<lever>=<value>`` for each lever this reproduction turns on (none at the defaults)."""
+        """``train.<lever>=<value>``: ``target_tau`` always, each other lever this reproduction turns on."""
         def text(value: Any) -> str:
             return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
 
-        return [f"train.{key}={text(value)}" for key, value in self.levers]
+        levers = {**LEVERS_OFF, **dict(self.levers)}  # target_tau always: the budget preset may select a learner
+        return [f"train.{key}={text(value)}" for key, value in levers.items()
+                if key == "target_tau" or value != LEVERS_OFF[key]]
+
+    def counterfactual_overrides(self) -> list[str]:
+        """``train.counterfactual.<key>=<value>``: the mode always (the budget preset may select a learner), and
+        its settings when on."""
+        counterfactual = dict(self.counterfactual)
+        if counterfactual["mode"] == "off":
+            return ["train.counterfactual.mode=off"]
+        return [f"train.counterfactual.{k}={v}" for k, v in counterfactual.items()]
 
     @property
     def methods(self) -> tuple[Method, ...]:
@@ -143,8 +153,8 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(not 0 <= seed <= MAX_SEED for seed in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
-    counterfactual = dataclasses.asdict(s.counterfactual)
-    levers = tuple((k, v) for k, v in dataclasses.asdict(s.train).items() if v != LEVERS_OFF[k])
+    counterfactual, lever_values = resolve_learner(s)
+    levers = tuple((k, v) for k, v in lever_values.items() if v != LEVERS_OFF[k])
     scenarios = names("scenarios", SCENARIOS)
     ceiling = None if s.ceiling is None else Path(s.ceiling)
     if ceiling is not None:
@@ -180,6 +190,40 @@ def check_ceilings(folder: Path, scenarios: tuple[str, ...], episodes: int) -> N
         for key in asked:
             if asked[key] != have[key]:
                 raise PlanError(f"ceiling: {folder / f'{sc}.json'} has {key} {have[key]!r}; the tests' is {asked[key]!r}")
+
+
+def resolve_learner(s: ReproduceConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Every run's ``train.counterfactual`` and stability levers: ``train_learner`` (null: the budget preset's,
+    :func:`crowdrl.training.learners.learner_of_preset`) with the keys set one by one over it."""
+    from crowdrl.training.learners import learner_of_preset, learner_settings
+
+    if s.budget not in BUDGETS:
+        raise PlanError(f"budget: unknown {s.budget!r}; allowed: {', '.join(BUDGETS)}")
+    try:
+        settings = learner_settings(s.train_learner if s.train_learner is not None else learner_of_preset(s.budget))
+    except ValueError as exc:
+        raise PlanError(f"train_{exc}") from None  # learner: unknown ... -> train_learner: unknown ...
+    counterfactual = {**COUNTERFACTUAL_OFF, **settings["counterfactual"],
+                      **{k: v for k, v in dataclasses.asdict(s.counterfactual).items() if k != "mode"}}
+    if s.counterfactual.mode is not None:
+        counterfactual["mode"] = s.counterfactual.mode
+    levers = dataclasses.asdict(s.train)
+    if levers["target_tau"] is None:
+        levers["target_tau"] = settings["target_tau"]
+    return counterfactual, levers
+
+
+def learner_suffix(budget: str, learner: str | None, mode: str | None, tau: float | None) -> str:
+    """The default ``out=``'s suffix naming the learner: ``-counterfactual`` and ``-polyak`` (``target_tau`` < 1)."""
+    from crowdrl.training.learners import learner_of_preset, learner_settings
+
+    try:
+        settings = learner_settings(learner if learner is not None else learner_of_preset(budget))
+    except (ValueError, FileNotFoundError):  # an unknown budget or learner: make_plan names it
+        return ""
+    mode = settings["counterfactual"]["mode"] if mode is None else mode
+    tau = settings["target_tau"] if tau is None else tau
+    return ("" if mode == "off" else "-counterfactual") + ("-polyak" if isinstance(tau, (int, float)) and tau < 1 else "")
 
 
 def check_runs(plan: Plan) -> None:
@@ -255,8 +299,7 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
             f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
             f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
             f"planning.enabled={str(plan.planning).lower()}",
-            *[f"train.counterfactual.{k}={v}" for k, v in plan.counterfactual
-              if dict(plan.counterfactual)["mode"] != "off"], *plan.lever_overrides()]
+            *plan.counterfactual_overrides(), *plan.lever_overrides()]
 
 
 def is_trained(run_dir: Path) -> bool:

@@ -22,7 +22,7 @@ from crowdrl.files import atomic_write_bytes
 from crowdrl.sim.config import (LIDAR_KEYS, MIXED, OBSTACLE_KEYS, OPEN_SCENARIOS, SHARE_KEYS, SOCIAL_FORCE_KEYS,
                                 CrowdConfig)
 from crowdrl.training.compat import stored_config
-from crowdrl.training.config import LEVER_KEYS, ConfigError, RunConfig, TrainConfig, to_dict
+from crowdrl.training.config import LEVERS_OFF, ConfigError, RunConfig, to_dict
 from crowdrl.training.validation import validate
 
 FORMAT_VERSION = 1
@@ -39,7 +39,7 @@ _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": Crowd
                     **{k: getattr(CrowdConfig, k) for k in (*SOCIAL_FORCE_KEYS, *SHARE_KEYS)}}}
 
 
-_TRAIN_NEUTRAL = {key: getattr(TrainConfig, key) for key in LEVER_KEYS}
+_TRAIN_NEUTRAL = LEVERS_OFF  # the levers off (not today's defaults): as before the keys
 
 
 def config_fingerprint(config: dict) -> str:

@@ -5,13 +5,17 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from crowdrl.training.config import RunConfig
+from crowdrl.training.config import COUNTERFACTUAL_OFF, LEVERS_OFF, RunConfig
 
 # Keys whose schema default changed after run folders were recorded, at the value those folders ran
 # with: a stored config (a run folder's config.yaml, a checkpoint's config) that lacks one ran with
 # this value, not with today's default. planning.enabled: off before planning was the default (the
-# schema's default was off until one set of defaults); train.compile_acting: off in the schema before.
-STORED_DEFAULTS = {"planning": {"enabled": False}, "train": {"compile_acting": False}}
+# schema's default was off until one set of defaults); train.compile_acting: off in the schema before;
+# train.counterfactual.mode and train.target_tau: off and hard copies (the plain learner) before the
+# recommended learner became the default (issue 50).
+STORED_DEFAULTS = {"planning": {"enabled": False},
+                   "train": {"compile_acting": False, "counterfactual": {"mode": COUNTERFACTUAL_OFF["mode"]},
+                             "target_tau": LEVERS_OFF["target_tau"]}}
 
 
 def stored_config(cfg: DictConfig | dict) -> dict:
@@ -21,14 +25,18 @@ def stored_config(cfg: DictConfig | dict) -> dict:
     {'enabled': False}
     >>> stored_config({"planning": {"enabled": True}})["planning"]
     {'enabled': True}
+    >>> stored_config({"train": {"counterfactual": {"k": 3}}})["train"]["counterfactual"]
+    {'k': 3, 'mode': 'off'}
     """
+    def fill(node: object, defaults: dict) -> dict:
+        node = dict(node) if isinstance(node, dict) else {}
+        for key, value in defaults.items():
+            node[key] = fill(node.get(key), value) if isinstance(value, dict) else node.get(key, value)
+        return node
+
     out = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     for group, keys in STORED_DEFAULTS.items():
-        node = out.get(group)
-        node = dict(node) if isinstance(node, dict) else {}
-        for key, value in keys.items():
-            node.setdefault(key, value)
-        out[group] = node
+        out[group] = fill(out.get(group), keys)
     return out
 
 

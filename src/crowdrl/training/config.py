@@ -136,10 +136,15 @@ class CounterfactualConfig:
     ``second_update``: a second double-DQN step on them after each real one (SG-D3QN's trainer);
     ``merged``: one step on the real and counterfactual terms, the latter weighted ``weight``."""
 
-    mode: str = "off"
+    mode: str = "second_update"  # the recommended learner's (conf/learner/); "off" before issue 50 (COUNTERFACTUAL_OFF)
     actions: str = "topk"
     k: int = 5  # alternatives per sampled state (actions=all: every action, k is not read)
     weight: float = 0.5  # merged: loss = (1 - weight) * real + weight * counterfactual
+
+
+# counterfactual experience off (the plain learner, conf/learner/plain.yaml): what a stored config that
+# predates the key ran with, and a fingerprint leaves out (so older run folders keep theirs)
+COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}
 
 
 @dataclass
@@ -167,20 +172,24 @@ class TrainConfig:
     # torch.compile graph (bench_train.py --loss)
     compile_loss: bool = True
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
-    # stability levers, each off at its default (the paper's learner): Polyak target updates after every
-    # update (1: a hard copy every target_update_frames), a Huber loss of this delta (null: squared error),
-    # the Q gradients' norm clipped (null: not), the learning rate decayed linearly to lr_end over
-    # total_frames (null: constant), LayerNorm in the Q head's hidden layers (crowdrl.models.DuelingHead)
-    target_tau: float = 1.0
+    # stability levers (LEVERS_OFF: each off, the paper's learner): Polyak target updates after every
+    # update (1: a hard copy every target_update_frames; 0.005 in the recommended learner, the default),
+    # a Huber loss of this delta (null: squared error), the Q gradients' norm clipped (null: not), the
+    # learning rate decayed linearly to lr_end over total_frames (null: constant), LayerNorm in the Q
+    # head's hidden layers (crowdrl.models.DuelingHead)
+    target_tau: float = 0.005
     huber_delta: float | None = None
     grad_clip_norm: float | None = None
     lr_end: float | None = None
     q_layer_norm: bool = False
 
 
-# train's stability levers (each off at its TrainConfig default): read by the fingerprint (left out at their
-# defaults, so folders made before them keep theirs) and given to every run of a reproduction
+# train's stability levers: read by the fingerprint (left out when off, so folders made before them keep
+# theirs) and given to every run of a reproduction
 LEVER_KEYS = ("target_tau", "huber_delta", "grad_clip_norm", "lr_end", "q_layer_norm")
+# each lever off (the paper's learner; the defaults before issue 50 made target_tau 0.005): what a stored
+# config that predates a lever ran with
+LEVERS_OFF = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None, "q_layer_norm": False}
 
 
 @dataclass

@@ -198,7 +198,7 @@ def check_counterfactual(run: RunConfig) -> None:
         raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
                           f"after another action, which is exact only while they ignore the robot; with "
                           f"env.robot_visible=true the {who} humans react to it (set "
-                          f"train.counterfactual.mode=off or env.robot_visible=false)")
+                          f"learner=plain, train.counterfactual.mode=off or env.robot_visible=false)")
 
 
 def check_threads(threads: Any, key: str = "threads") -> None:
