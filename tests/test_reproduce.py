@@ -118,6 +118,21 @@ def test_a_clone_rebuilds_the_table_from_the_committed_records(reproduced, tmp_p
     assert (clone / "curves.png").exists() and (clone / "side_by_side.png").exists()
 
 
+def test_a_record_whose_discomfort_separation_is_an_overlap_is_read(tmp_path):
+    """A collision step counts as discomfort, and its surface distance is negative (the overlap): a smoke run's
+    record with min_separation -0.016 was refused by the reader, and reproduce.py stopped after training."""
+    from crowdrl.evaluation.report import RecordError, read_eval_record
+
+    record = {"success_rate": 0.5, "collision_rate": 0.5, "timeout_rate": 0.0, "navigation_time": 10.0,
+              "average_return": 0.1, "discomfort_frequency": 0.1, "min_separation": -0.016, "episodes": 4}
+    path = tmp_path / "eval.json"
+    path.write_text(json.dumps(record))
+    assert read_eval_record(path)["min_separation"] == -0.016
+    path.write_text(json.dumps({**record, "min_separation": "near"}))
+    with pytest.raises(RecordError, match="min_separation: must be a finite number"):
+        read_eval_record(path)
+
+
 @pytest.mark.parametrize("field, value", [("success_rate", 7.5), ("collision_rate", "high"), ("episodes", None)])
 def test_records_read_back_are_checked_naming_the_file_and_field(tmp_path, field, value):
     from crowdrl.evaluation.report import RecordError, read_eval_record, read_summary

@@ -122,7 +122,8 @@ def check_metrics(metrics: Any, where: str, *, separation_key: str = "min_separa
     """``metrics`` (an ``eval.json`` record, or ``summary.json``'s ``test.metrics`` with
     ``separation_key="discomfort_min_separation"``) checked field by field; :class:`RecordError`
     naming ``where`` and the field otherwise: rates in [0, 1], ``episodes`` an integer >= 1, the
-    navigation time and min separation finite and >= 0 or null, the average return finite or null."""
+    navigation time finite and >= 0 or null, the min separation and the average return finite or null
+    (a collision step's overlap makes the separation negative)."""
     if not isinstance(metrics, dict):
         raise RecordError(f"{where}: expected a JSON object of metrics, got {type(metrics).__name__}")
 
@@ -135,9 +136,11 @@ def check_metrics(metrics: Any, where: str, *, separation_key: str = "min_separa
     need("episodes", isinstance(episodes, int) and not isinstance(episodes, bool) and episodes >= 1, "an integer >= 1")
     for key in RATE_FIELDS:
         need(key, _number(metrics.get(key)) and 0 <= metrics[key] <= 1, "a number in [0, 1]")
-    for key in ("navigation_time", separation_key):
-        value = metrics.get(key, "(missing)")
-        need(key, value is None or (_number(value) and value >= 0), "a finite number >= 0 or null")
+    value = metrics.get("navigation_time", "(missing)")
+    need("navigation_time", value is None or (_number(value) and value >= 0), "a finite number >= 0 or null")
+    # the mean surface distance over discomfort steps, the collision step included: an overlap there is negative
+    value = metrics.get(separation_key, "(missing)")
+    need(separation_key, value is None or _number(value), "a finite number (negative: an overlap) or null")
     value = metrics.get("average_return", "(missing)")
     need("average_return", value is None or _number(value), "a finite number or null")
     return metrics
