@@ -5,7 +5,7 @@
 #   bash experiments/bench_jobs.sh [--json]
 cd "$(dirname "$0")/.."
 json=false; [ "$1" = "--json" ] && json=true
-run() { WANDB_MODE=offline .venv/bin/python experiments/train.py preset=demo planning.enabled=false train.total_frames=20000 train.val_every_frames=10000 train.test_episodes=200 logger=csv logger.render=false logger.progress_bar=false seed=$1 hydra.run.dir="${TMPDIR:-/tmp}"/crowdrl-jobs/$2/s$1 >/dev/null 2>&1; }
+run() { WANDB_MODE=offline .venv/bin/python experiments/train.py preset=demo learner=plain planning.enabled=false train.total_frames=20000 train.val_every_frames=10000 train.test_episodes=200 logger=csv logger.render=false logger.progress_bar=false seed=$1 hydra.run.dir="${TMPDIR:-/tmp}"/crowdrl-jobs/$2/s$1 >/dev/null 2>&1; }
 rows=()
 for K in 1 2 3; do
   rm -rf "${TMPDIR:-/tmp}"/crowdrl-jobs/k$K; start=$(date +%s.%N)

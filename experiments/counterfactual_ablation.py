@@ -40,7 +40,7 @@ SETTINGS = {  # name -> train.counterfactual overrides
     "merged5": {"mode": "merged", "actions": "topk", "k": 5, "weight": 0.5},
     "random5": {"mode": "second_update", "actions": "random", "k": 5},
     "all81": {"mode": "second_update", "actions": "all"},
-    # top5 with one stability lever each (train.* keys, off by default)
+    # top5 with one stability lever each (train.* keys, off in BASE's plain learner)
     "top5-polyak": {"mode": "second_update", "actions": "topk", "k": 5},
     "top5-huber": {"mode": "second_update", "actions": "topk", "k": 5},
     "top5-clip": {"mode": "second_update", "actions": "topk", "k": 5},
@@ -54,7 +54,9 @@ LEVERS = {  # setting -> the other train.* overrides it adds
     "top5-lrdecay": ["train.lr_end=0.0001"],  # 1e-3 -> 1e-4 over the run
     "top5-layernorm": ["train.q_layer_norm=true"],
 }
-BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
+# learner=plain: no counterfactual experience, hard target copies (the default before issue 50, with which
+# results/counterfactual-* were trained); each setting then sets its own keys over it
+BASE = ["learner=plain", "logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
         "train.test_episodes=100"]  # the test is not what this compares: validation only
 THRESHOLD, LAST, COLLAPSE = 0.90, 5, 0.2
 

@@ -11,7 +11,7 @@ changes nothing, so it has one cell), ``mixed`` (a mixed crowd, blind: ``social_
 * ``pretrained``: ``pretrained/sgd3qn-planning-egreedy-episodes-s{0,1,2}`` (trained on blind ORCA at the
   episodes budget), zero-shot on every other cell;
 * ``orca-robot``: the ORCA robot (deterministic: one evaluation per cell);
-* with ``--train``: SG-D3QN + planning, ε-greedy, trained at ``--preset`` (default ``demo``) on blind ORCA
+* with ``--train``: SG-D3QN + planning, ε-greedy, ``learner=plain``, trained at ``--preset`` (default ``demo``) on blind ORCA
   (``trained-orca``, the control at the same budget), on ORCA seeing the robot (``trained-orca-visible``) and
   on social-force humans (``trained-social_force``), each then tested on every cell.
 
@@ -62,7 +62,8 @@ PRETRAINED = {  # group -> the agents' folders
     "pretrained": "pretrained/sgd3qn-planning-egreedy-episodes-s{seed}",
     "pretrained-polyak": "pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{seed}",
 }
-TRAIN_BASE = ["logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
+# learner=plain (no counterfactual experience, hard target copies): the learner results/human-models' runs trained with
+TRAIN_BASE = ["learner=plain", "logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
               "train.test_episodes=100"]  # the test here is evaluate.py's on every cell
 
 

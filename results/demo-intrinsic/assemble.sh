@@ -1,7 +1,7 @@
 #!/bin/bash
 # The five-variant table at the demo budget (planning on) with exploration=icm and exploration=re3 at
 # their new defaults. Every run here is one reproduce.py would train for
-# `reproduce.py budget=demo jobs=2 out=results/demo-intrinsic` (each config.yaml equals what that
+# `reproduce.py budget=demo train_learner=plain jobs=2 out=results/demo-intrinsic` (each config.yaml equals what that
 # command composes, up to keys added since at their inert defaults), so they are copied, not retrained:
 #   egreedy, noisy, dropout: results/demo-planning/runs (their configs predate the intrinsic options)
 #   icm: results/intrinsic/runs/icm-stable-s*   (= exploration=icm's defaults)
@@ -23,4 +23,4 @@ for s in 0 1 2; do
 done
 copy results/demo-planning/orca $OUT/orca
 [ -f $OUT/manifest.json ] || cp results/demo-planning/manifest.json $OUT/manifest.json
-WANDB_MODE=offline .venv/bin/python experiments/reproduce.py budget=demo jobs=1 out=$OUT
+WANDB_MODE=offline .venv/bin/python experiments/reproduce.py budget=demo train_learner=plain jobs=1 out=$OUT

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue 26's arms of the intrinsic-reward study at the demo budget (planning on, as results/demo-planning),
+# Issue 26's arms of the intrinsic-reward study at the demo budget (planning on, the plain learner, as results/demo-planning),
 # run one after another: `bash results/intrinsic/chain.sh ARM:SEED [ARM:SEED ...]`. A killed run resumes
 # from its last checkpoint when rerun; finished runs are skipped. Arms are compared on validation
 # (experiments/compare_runs.py --split val); the 1000 circle test cases each run ends with are for the table.
@@ -32,7 +32,7 @@ for item in "$@"; do
   if [ -f $D/checkpoints/last.pt ]; then
     .venv/bin/python experiments/train.py resume=$D logger.progress_bar=false >> $LOG 2>&1
   else
-    .venv/bin/python experiments/train.py preset=demo seed=$S $OVR logger=csv logger.progress_bar=false \
+    .venv/bin/python experiments/train.py preset=demo learner=plain seed=$S $OVR logger=csv logger.progress_bar=false \
       logger.render=false hydra.run.dir=$D >> $LOG 2>&1
   fi
 done

@@ -9,7 +9,7 @@ for S in "$@"; do
   if [ -f $D/checkpoints/last.pt ] && [ ! -f $D/summary.json ]; then
     .venv/bin/python experiments/train.py resume=$D logger.progress_bar=false >> results/planning/train-s$S.log 2>&1
   elif [ ! -f $D/summary.json ]; then
-    .venv/bin/python experiments/train.py preset=demo planning.enabled=true seed=$S hydra.run.dir=$D logger=csv \
+    .venv/bin/python experiments/train.py preset=demo learner=plain planning.enabled=true seed=$S hydra.run.dir=$D logger=csv \
       logger.progress_bar=false >> results/planning/train-s$S.log 2>&1
   fi
   for E in circle square; do

@@ -1,7 +1,8 @@
 """The main job on a small default: train SG-D3QN, test it against ORCA, render it (``crowdrl-demo``,
 ``python -m crowdrl.cli.demo``, or ``python experiments/demo.py`` / ``make demo`` in a checkout).
 
-Trains the default configuration (SG-D3QN with its online planning, ε-greedy, circle) for the ``demo`` preset's budget,
+Trains the default configuration (SG-D3QN with its online planning, ε-greedy, circle, the recommended learner:
+counterfactual experience and Polyak targets) for the ``demo`` preset's budget,
 evaluates the best validation checkpoint deterministically (ε = 0) on the scenario's fixed test cases (1000 by
 default, test seed 0), runs the ORCA robot baseline on the same cases, prints both side by side,
 and writes the learning curves, a PNG and a GIF of test case 0 into the run folder (printed).

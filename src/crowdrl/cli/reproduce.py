@@ -9,7 +9,7 @@ Run as ``crowdrl-reproduce``, ``python -m crowdrl.cli.reproduce`` or, in a check
 
     python experiments/reproduce.py budget=smoke 'variants=[egreedy,re3]' 'seeds=[0,1]' out=/tmp/repro
     python experiments/reproduce.py budget=demo jobs=2          # SG-D3QN with its online planning, 5 variants
-    python experiments/reproduce.py budget=demo planning=false jobs=2 out=results/demo   # without (results/demo/)
+    python experiments/reproduce.py budget=demo planning=false train_learner=plain jobs=2 out=results/demo   # results/demo/
     python experiments/reproduce.py budget=paper launcher=slurm # the runs as SLURM jobs (submitit)
     python experiments/reproduce.py budget=demo 'encoders=[sarl,lstm_rl,mp_rgl]' 'variants=[egreedy,icm]'
 

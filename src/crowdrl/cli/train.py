@@ -1,8 +1,9 @@
 """Train a crowd-navigation agent (Hydra entry point: ``crowdrl-train``, ``python -m crowdrl.cli.train``,
 or ``python experiments/train.py`` in a checkout; the configs are crowdrl's own, :func:`crowdrl.resources.config_dir`).
 
-    python experiments/train.py                                # demo preset, SG-D3QN, ε-greedy, circle
-    python experiments/train.py preset=paper seed=1
+    python experiments/train.py                                # demo preset, SG-D3QN, ε-greedy, circle, the recommended learner
+    python experiments/train.py learner=plain                  # without counterfactual experience, hard target copies
+    python experiments/train.py preset=paper seed=1            # the paper's budget and learner
     python experiments/train.py -m preset=smoke seed=0,1       # multirun
     python experiments/train.py resume=runs/<folder>           # continue a killed run
 """
