@@ -1,7 +1,7 @@
-"""ONNX export (crowdrl.export, experiments/export.py) and the numpy + onnxruntime example
-(crowdrl/onnx_example.py, run in a checkout by experiments/onnx_example.py): the exported model acts
-as the library's greedy actor, the example runs where torch and crowdrl cannot be imported, bad
-arguments exit 2 naming the argument."""
+"""ONNX export (crowdrl.export, experiments/export.py) of greedy Q policies (the planner's export:
+tests/test_export_planner.py) and the numpy + onnxruntime example (crowdrl/onnx_example.py, run in a checkout
+by experiments/onnx_example.py): the exported model acts as the library's greedy actor, the example runs
+where torch and crowdrl cannot be imported, bad arguments exit 2 naming the argument."""
 
 from __future__ import annotations
 
@@ -178,20 +178,23 @@ def test_the_example_refuses_a_model_trained_among_obstacles_naming_the_inputs_i
     assert "Traceback" not in proc.stderr
 
 
-def test_a_planning_checkpoint_exports_its_q_policy_and_says_so(tmp_path):
+def test_a_planning_checkpoint_exports_its_q_policy_alone_with_planning_depth_0_and_says_so(tmp_path):
+    """planning_depth=0: the greedy Q policy of a planning checkpoint (its planner: tests/test_export_planner.py),
+    printed and labelled in the metadata as acting differently."""
     folder = make_run_folder(tmp_path / "run", {"planning": {"enabled": True}, "env": {"num_humans": 5}})
     work = tmp_path / "work"
     work.mkdir()
-    proc = subprocess.run([*EXPORT, f"checkpoint={folder}", "out=policy.onnx"], cwd=work, env=ENV,
+    proc = subprocess.run([*EXPORT, f"checkpoint={folder}", "out=policy.onnx", "planning_depth=0"], cwd=work, env=ENV,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "planning is not exported" in proc.stdout
+    assert "GREEDY Q ONLY: planning_depth=0 drops the online planner" in proc.stdout
     assert f"run it without torch: python {EXAMPLE} " in proc.stdout  # the example's path, wherever crowdrl is
     assert sorted(p.name for p in work.iterdir()) == ["policy.onnx"], "no Hydra folder or log beside it"
     meta = {p.key: p.value for p in onnx.load(work / "policy.onnx").metadata_props}
-    assert meta["crowdrl.planning"].startswith("not exported: the checkpoint acts with online planning")
+    assert meta["crowdrl.planning"].startswith("dropped (planning_depth=0): the checkpoint acts with online planning")
+    assert meta["crowdrl.policy"] == "greedy_q" and meta["crowdrl.observation"] == "robot_centric"
     assert meta["crowdrl.encoder"] == "sgd3qn" and json.loads(meta["crowdrl.config"])["planning"]["enabled"]
-    assert export_onnx(folder, tmp_path / "again.onnx", check=False).planning_dropped
+    assert export_onnx(folder, tmp_path / "again.onnx", check=False, planning={"depth": 0}).planning_dropped
 
 
 class _Payload:

@@ -113,7 +113,8 @@ def test_the_check_off_leaves_the_fingerprint_of_a_run_without_the_key():
 
 def test_evaluate_acts_with_another_planner_without_retraining():
     """``eval.planning_depth`` / ``_width`` / ``_safety_horizon``: a checkpoint acts with another planner; the
-    checkpoint's own values give its own numbers; bad values and the ORCA baseline are refused naming the key."""
+    checkpoint's own values give its own numbers; bad values (depth -1; 0 is planning off:
+    tests/test_export_planner.py) and the ORCA baseline are refused naming the key."""
     from pathlib import Path
 
     from crowdrl.training.pipeline import evaluate_spec
@@ -126,7 +127,7 @@ def test_evaluate_acts_with_another_planner_without_retraining():
     assert {k: same[k] for k in own} == own
     deeper, _ = evaluate_spec(**common, planning={"depth": 2, "safety_horizon": 2})
     assert deeper["planning_depth"] == 2 and deeper["planning_safety_horizon"] == 2
-    for planning, key in (({"depth": 0}, "eval.planning_depth"), ({"width": 82}, "eval.planning_width"),
+    for planning, key in (({"depth": -1}, "eval.planning_depth"), ({"width": 82}, "eval.planning_width"),
                           ({"safety_horizon": 21}, "eval.planning_safety_horizon")):
         with pytest.raises(ValueError, match=key):
             evaluate_spec(**common, planning=planning)

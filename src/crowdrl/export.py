@@ -1,26 +1,43 @@
-"""Export a trained checkpoint's greedy Q policy to ONNX, to run on a robot without torch
+"""Export a trained checkpoint's acting policy to ONNX, to run on a robot without torch
 (``docs/export.md``; ``experiments/export.py`` is the command line).
 
-The model takes the observation as the Q actor reads it, in the robot's goal-aligned frame
-(:func:`crowdrl.envs.robot_centric.robot_centric`), with a batch axis ``B``:
+**A checkpoint that acts with online planning** (SG-D3QN's planner, ``planning.enabled``: every shipped
+agent) exports its planner whole (:class:`PlannerPolicy`): the Q network, the crowd predictor and the
+depth-``d``, width-``w`` look-ahead of :class:`~crowdrl.policies.OnlinePlanner` (top-``w`` by Q, the
+one-step model, the simulator's reward, the bootstrap; the safety check when it has one), its depth,
+width and safety horizon fixed at export (the checkpoint's, or the export's ``planning_*`` keys). The
+planner reads the world-frame observation (its predictor is not invariant to the frame), with a batch
+axis ``B``:
+
+* ``robot`` ``[B, 9]`` float32: ``px, py, vx, vy, radius, gx, gy, v_pref, heading``;
+* ``humans`` ``[B, N, 5]`` float32: each human's ``px, py, vx, vy, radius``;
+* ``humans_mask`` ``[B, N]`` bool: True where a row is a human present.
+
+It returns ``q_values`` ``[B, 81]``, the planner's ``action`` ``[B]`` (int64), its ``command`` ``[B, 2]``,
+the ``candidates`` ``[B, w]`` (top-``w`` by Q, best first) and their ``scores`` ``[B, w]``.
+
+**A checkpoint that acts greedily on Q** (or any checkpoint with ``planning_depth=0``, which drops its
+planner: labelled in the metadata and printed) exports its greedy Q policy (:class:`GreedyQPolicy`) on
+the robot-centric observation (:func:`crowdrl.envs.robot_centric.robot_centric`):
 
 * ``robot_rc`` ``[B, 9]`` float32: ``0, 0, vx, vy, radius, goal distance, 0, v_pref, heading``;
 * ``humans_rc`` ``[B, N, 5]`` float32: each human's ``px, py, vx, vy, radius + robot radius``;
-* ``humans_mask`` ``[B, N]`` bool: True where a row is a human present (absent rows are ignored:
-  the networks are padding-invariant, so ``N`` slots may hold fewer people).
+* ``humans_mask`` ``[B, N]`` bool (absent rows are ignored: the networks are padding-invariant).
 
 A checkpoint trained among obstacles (corridor, doorway, room) takes the entity tokens of
-:func:`crowdrl.envs.robot_centric.entity_tokens` instead of the humans: ``entities_rc``
-``[B, N+K, 10]`` (the humans, then the observed obstacle edges) and ``entities_mask`` ``[B, N+K]``.
+:func:`crowdrl.envs.robot_centric.entity_tokens` instead of the humans (``entities_rc`` ``[B, N+K, 10]``,
+``entities_mask``); its planner reads the observed obstacle edges, which the exported planner does not
+take: such a checkpoint is refused unless ``planning_depth=0``.
 
-It returns ``q_values`` ``[B, 81]``, the greedy ``action`` ``[B]`` (int64, the first of tied
-maxima, as ``torch.argmax``) and its ``command`` ``[B, 2]``: the row of the unicycle action table
-(:func:`crowdrl.sim.kinematics.action_table`), ``(speed m/s, rotation rad)``: turn by the
-rotation, then move straight at the speed for one time step. ``N`` is free for every encoder
-but LSTM-RL, whose recurrence is unrolled over the checkpoint's largest crowd (``N`` is then fixed;
-pad with absent rows). Online planning (``planning.enabled``) needs the crowd predictor and
-the simulator's reward in a search, and is not exported: such a checkpoint exports its Q policy,
-and the model's metadata says so.
+The greedy model returns ``q_values``, the greedy ``action`` (the first of tied maxima, as
+``torch.argmax``) and its ``command``: the row of the unicycle action table
+(:func:`crowdrl.sim.kinematics.action_table`), ``(speed m/s, rotation rad)``: turn by the rotation, then
+move straight at the speed for one time step. ``N`` is free for every encoder but LSTM-RL, whose
+recurrence is unrolled over the checkpoint's largest crowd (``N`` is then fixed; pad with absent rows).
+
+The model's ``metadata_props`` hold the format version (:data:`FORMAT_VERSION`), the observation layout
+(:data:`LAYOUTS`), the crowd size, the planning settings and the run config; :func:`read_exported`
+checks them (a truncated file, another layout or a newer format is refused naming the file).
 """
 
 from __future__ import annotations
@@ -37,15 +54,24 @@ import torch
 from torch import Tensor, nn
 
 from crowdrl.files import atomic_write_bytes
+from crowdrl.policies.planning import OnlinePlanner
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
-from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network
+from crowdrl.training.checkpoint import (CheckpointError, checkpoint_path, config_fingerprint,
+                                        load_trained_network, load_trained_predictor)
 from crowdrl.envs.robot_centric import ENTITY_DIM
-from crowdrl.training.config import sees_obstacles, to_dict
+from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
 from crowdrl.training.factories import crowd_config
 
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
 ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles
+PLANNER_INPUTS = ("robot", "humans", "humans_mask")  # the planner: the env's world-frame observation
 OUTPUTS = ("q_values", "action", "command")
+PLANNER_OUTPUTS = ("q_values", "action", "command", "candidates", "scores")
+# the version of the model's layout and metadata: 1 (no crowdrl.format_version) wrote the greedy Q policy only,
+# 2 adds the planner, crowdrl.format_version, crowdrl.observation, crowdrl.policy and crowdrl.planning_*
+FORMAT_VERSION = 2
+# crowdrl.observation: the inputs each layout takes
+LAYOUTS = {"world": PLANNER_INPUTS, "robot_centric": INPUTS, "entities": ENTITY_INPUTS}
 FORMATS = ("onnx",)
 DEFAULT_OPSET = 17
 # encoders whose exported graph holds the crowd size as a constant (a loop unrolled over the humans)
@@ -69,6 +95,23 @@ class GreedyQPolicy(nn.Module):
         return q, action, self.table[action]
 
 
+class PlannerPolicy(nn.Module):
+    """``(robot [B, 9], humans [B, N, 5], humans_mask [B, N]) -> (Q [B, 81], action [B], command [B, 2],
+    candidates [B, w], scores [B, w])``: :meth:`OnlinePlanner.plan <crowdrl.policies.OnlinePlanner.plan>` on
+    world-frame states (deterministic: the network in eval mode), and the action's row of the action table."""
+
+    def __init__(self, planner: OnlinePlanner) -> None:
+        super().__init__()
+        if planner.entities:
+            raise ValueError("the exported planner reads no obstacle edges: a network trained among obstacles "
+                             "(entity tokens) cannot be exported with its planner")
+        self.planner = planner
+
+    def forward(self, robot: Tensor, humans: Tensor, humans_mask: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        plan = self.planner.plan(robot, humans, humans_mask)
+        return plan.action_value, plan.action, self.planner.table[plan.action], plan.candidates, plan.scores
+
+
 @dataclass
 class ExportInfo:
     """What :func:`export_onnx` wrote: the file, its metadata, and notes for the user (e.g. planning)."""
@@ -76,8 +119,10 @@ class ExportInfo:
     path: Path
     metadata: dict[str, str]
     planning_dropped: bool = False  # the checkpoint plans online; the model is its Q policy without planning
+    planner: bool = False  # the model holds the online planner (world-frame inputs, PLANNER_OUTPUTS)
     notes: list[str] = field(default_factory=list)
     max_q_error: float | None = None  # onnxruntime vs torch on random inputs (None: not checked)
+    actions_differing: int = 0  # of the check's planner actions, those that differ from torch's on a near-tie
 
 
 def check_writable(path: Path | str, name: str = "out") -> Path:
@@ -100,33 +145,57 @@ def check_writable(path: Path | str, name: str = "out") -> Path:
     return path
 
 
-def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAULT_OPSET,
-                check: bool = True) -> ExportInfo:
-    """Write the greedy Q policy of ``checkpoint`` (a run folder or a ``.pt``) to ``path`` as ONNX.
+def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAULT_OPSET, check: bool = True,
+                planning: dict[str, int | None] | None = None) -> ExportInfo:
+    """Write the acting policy of ``checkpoint`` (a run folder or a ``.pt``) to ``path`` as ONNX: its online
+    planner whole when it acts with one (:class:`PlannerPolicy`), else its greedy Q policy.
 
-    Uses torch's TorchScript-based exporter (``dynamo=False``). With ``check`` (and onnxruntime
-    installed) the written model is run on random observations and compared with the torch
-    policy; a difference above 1e-4 in Q raises ``RuntimeError``. Raises
-    :class:`~crowdrl.training.CheckpointError` naming the file for a missing, corrupt or unsafe
-    checkpoint, ``ValueError`` naming ``out`` for a path that cannot be written.
+    ``planning``: the planner settings ``depth``, ``width``, ``safety_horizon`` to export instead of the
+    checkpoint's (``None`` values: its own); ``depth`` 0 exports the greedy Q policy of a planning checkpoint
+    (it acts differently: noted in :attr:`ExportInfo.notes` and the metadata). Uses torch's TorchScript-based
+    exporter (``dynamo=False``). With ``check`` (and onnxruntime installed) the written model is run on random
+    observations and compared with the torch policy: Q (and the planner's scores) differing by more than
+    1e-4, or a planner action differing where the scores do not tie within 1e-4, raises ``RuntimeError``.
+    Raises :class:`~crowdrl.training.CheckpointError` naming the file for a missing, corrupt or unsafe
+    checkpoint, ``ValueError`` naming the key for a path that cannot be written (``out``), bad planner
+    settings (``planning_<key>``) or a planner the export cannot hold (trained among obstacles).
     """
     try:
         import onnx
     except ImportError:
         raise RuntimeError("exporting needs the onnx package: pip install 'crowdrl[export]'") from None
+    from crowdrl.training.pipeline import act_with
+
     ckpt = checkpoint_path(checkpoint)
     run, net, data = load_trained_network(ckpt)
+    trained = run
+    acting = {k: v for k, v in (planning or {}).items() if v is not None}
+    if acting:
+        run = act_with(run, acting, prefix="planning_")
+    entities = sees_obstacles(run)
+    plans = run.planning.enabled
+    if plans and entities:
+        raise ValueError(f"planning_depth: {ckpt} was trained among obstacles ({run.env.scenario}): its planner reads "
+                         "the observed obstacle edges, which the exported planner does not take; export its greedy Q "
+                         "policy with planning_depth=0 (it acts differently from the planner)")
     path = check_writable(path)
     crowd = crowd_config(run)
     low, high = crowd.min_humans or crowd.num_humans, crowd.num_humans
-    policy = GreedyQPolicy(net, action_table(crowd.robot_v_pref)).eval()
     fixed_crowd = run.encoder.name in FIXED_CROWD_ENCODERS
-    entities = sees_obstacles(run)
-    inputs, width = (ENTITY_INPUTS, ENTITY_DIM) if entities else (INPUTS, 5)
+    table = action_table(crowd.robot_v_pref)
+    if plans:
+        predictor = load_trained_predictor(run, data, ckpt)
+        p = run.planning
+        policy: nn.Module = PlannerPolicy(OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth,
+                                                        width=p.width, safety_horizon=p.safety_horizon)).eval()
+        inputs, outputs, layout, width = PLANNER_INPUTS, PLANNER_OUTPUTS, "world", 5
+    else:
+        policy = GreedyQPolicy(net, table).eval()
+        inputs, width = (ENTITY_INPUTS, ENTITY_DIM) if entities else (INPUTS, 5)
+        outputs, layout = OUTPUTS, "entities" if entities else "robot_centric"
     rows = high + crowd.num_obstacle_tokens if entities else high  # the slots an unrolled LSTM-RL takes
-    example = _random_observations(2, rows, seed=0, width=width)
-    axes = {inputs[0]: {0: "batch"}, inputs[1]: {0: "batch"}, inputs[2]: {0: "batch"},
-            "q_values": {0: "batch"}, "action": {0: "batch"}, "command": {0: "batch"}}
+    example = _random_world(2, rows, seed=0) if plans else _random_observations(2, rows, seed=0, width=width)
+    axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
     if not fixed_crowd:
         axes[inputs[1]][1] = axes[inputs[2]][1] = "entities" if entities else "humans"
     buf = io.BytesIO()
@@ -136,59 +205,240 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx")
-        torch.onnx.export(policy, example, buf, input_names=list(inputs), output_names=list(OUTPUTS),
+        torch.onnx.export(policy, example, buf, input_names=list(inputs), output_names=list(outputs),
                           dynamic_axes=axes, opset_version=opset, dynamo=False)
     model = onnx.load_from_string(buf.getvalue())
 
     notes: list[str] = []
-    planning = "off: the checkpoint acts greedily on Q"
-    if run.planning.enabled:
-        p = run.planning
-        planning = (f"not exported: the checkpoint acts with online planning (planning.depth={p.depth}, "
-                    f"planning.width={p.width}, predictor={p.predictor}); this model is its greedy Q policy "
-                    f"without planning, which may act differently")
-        notes.append(f"planning is not exported: {ckpt} was trained with planning.enabled=true; {path} holds "
-                     f"its greedy Q policy without the online planner")
+    dropped = trained.planning.enabled and not plans
+    p = run.planning
+    if plans:
+        planning_text = (f"on: the online planner, planning.depth={p.depth}, planning.width={p.width}, "
+                         f"planning.safety_horizon={p.safety_horizon}, predictor={p.predictor}, gamma={run.train.gamma!r}")
+    elif dropped:
+        tp = trained.planning
+        planning_text = (f"dropped (planning_depth=0): the checkpoint acts with online planning (planning.depth={tp.depth}, "
+                         f"planning.width={tp.width}, predictor={tp.predictor}); this model is its greedy Q policy "
+                         f"without planning, which acts differently")
+        notes.append(f"GREEDY Q ONLY: planning_depth=0 drops the online planner {ckpt} acts with; {path} holds its "
+                     f"greedy Q policy, which acts differently (evaluate both: docs/export.md)")
+    else:
+        planning_text = "off: the checkpoint acts greedily on Q"
     if fixed_crowd:
         notes.append(f"{run.encoder.name}: the model takes exactly {rows} {inputs[1]} rows "
                      f"(pad with {inputs[2]}=false)")
-    described = ("humans_rc [B,N,5] float32 (px, py, vx, vy, radius + robot radius), humans_mask [B,N] bool "
-                 "(True: present)")
-    if entities:
-        described = (f"entities_rc [B,N+K,10] float32: N humans (px, py, vx, vy, radius + robot radius, 0, 0, 0, 0, 0) "
-                     f"then K obstacle edges (cx, cy, 0, 0, robot radius, ax, ay, bx, by, 1: c the edge's point "
-                     f"nearest to the robot, a and b its ends; trained with K={crowd.num_obstacle_tokens}, the "
-                     f"nearest first), entities_mask [B,N+K] bool (True: present)")
+    if plans:
+        described = ("robot [B,9] float32 (px, py, vx, vy, radius, gx, gy, v_pref, heading), humans [B,N,5] float32 "
+                     "(px, py, vx, vy, radius), humans_mask [B,N] bool (True: present); all in the world frame "
+                     "(the env's robot, humans, humans_mask)")
+        outputs_text = (f"q_values [B,81] float32 (Q of the state), action [B] int64 (the planner's), command [B,2] "
+                        f"float32 (speed m/s, rotation rad), candidates [B,{p.width}] int64 (top-{p.width} by Q, best "
+                        f"first), scores [B,{p.width}] float32 (their look-ahead scores)")
+    else:
+        humans_text = ("humans_rc [B,N,5] float32 (px, py, vx, vy, radius + robot radius), humans_mask [B,N] bool "
+                       "(True: present)")
+        if entities:
+            humans_text = (f"entities_rc [B,N+K,10] float32: N humans (px, py, vx, vy, radius + robot radius, 0, 0, 0, "
+                           f"0, 0) then K obstacle edges (cx, cy, 0, 0, robot radius, ax, ay, bx, by, 1: c the edge's "
+                           f"point nearest to the robot, a and b its ends; trained with K={crowd.num_obstacle_tokens}, "
+                           f"the nearest first), entities_mask [B,N+K] bool (True: present)")
+        described = ("robot_rc [B,9] float32 (0, 0, vx, vy, radius, goal distance, 0, v_pref, heading), "
+                     f"{humans_text}; all in the robot's frame: origin at the robot, x towards the goal")
+        outputs_text = ("q_values [B,81] float32, action [B] int64 (greedy, first of ties), "
+                        "command [B,2] float32 (speed m/s, rotation rad)")
     metadata = {
-        "crowdrl.inputs": "robot_rc [B,9] float32 (0, 0, vx, vy, radius, goal distance, 0, v_pref, heading), "
-                          f"{described}; all in the robot's frame: origin at the robot, x towards the goal",
-        "crowdrl.outputs": "q_values [B,81] float32, action [B] int64 (greedy, first of ties), "
-                           "command [B,2] float32 (speed m/s, rotation rad)",
+        "crowdrl.format_version": str(FORMAT_VERSION),
+        "crowdrl.observation": layout,
+        "crowdrl.policy": "planner" if plans else "greedy_q",
+        "crowdrl.inputs": described,
+        "crowdrl.outputs": outputs_text,
         "crowdrl.command": f"unicycle: turn by rotation, then move straight at speed for one time step of "
                            f"{crowd.time_step} s (angular rate = rotation / time_step)",
-        "crowdrl.action_table": json.dumps(policy.table.tolist()),
+        "crowdrl.action_table": json.dumps(table.tolist()),
         "crowdrl.time_step": repr(crowd.time_step),
         "crowdrl.v_pref": repr(crowd.robot_v_pref),
-        "crowdrl.humans": f"N={high} fixed" if fixed_crowd else "N free (at least 1)",
+        "crowdrl.humans": f"N={rows} fixed" if fixed_crowd else "N free (at least 1)",
+        "crowdrl.num_humans": str(high),
         "crowdrl.trained_humans": f"{low}..{high}" if low < high else str(high),
         "crowdrl.encoder": run.encoder.name,
         "crowdrl.exploration": run.exploration.name,
-        "crowdrl.planning": planning,
+        "crowdrl.planning": planning_text,
+        "crowdrl.planning_depth": str(p.depth if plans else 0),
+        "crowdrl.planning_width": str(p.width if plans else 0),
+        "crowdrl.planning_safety_horizon": str(p.safety_horizon if plans else 0),
         "crowdrl.frames": str(data.get("frames", "unknown")),
-        "crowdrl.fingerprint": config_fingerprint(to_dict(run)),
-        "crowdrl.config": json.dumps(to_dict(run), sort_keys=True),
+        "crowdrl.fingerprint": config_fingerprint(to_dict(trained)),
+        "crowdrl.config": json.dumps(to_dict(trained), sort_keys=True),
         "crowdrl.checkpoint": ckpt.name,
     }
     onnx.helper.set_model_props(model, metadata)
-    model.producer_name, model.doc_string = "crowdrl", "greedy Q policy of a crowdrl checkpoint (docs/export.md)"
+    model.producer_name = "crowdrl"
+    model.doc_string = (f"online planner (depth {p.depth}, width {p.width}) of a crowdrl checkpoint (docs/export.md)"
+                        if plans else "greedy Q policy of a crowdrl checkpoint (docs/export.md)")
     onnx.checker.check_model(model)
     payload = model.SerializeToString()
-    max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width) if check else None
+    max_err, differing = None, 0
+    if check and plans:
+        max_err, differing = _check_planner_against_torch(payload, policy, rows, fixed_crowd)
+    elif check:
+        max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width)
     try:
         atomic_write_bytes(path, payload)
     except OSError as exc:
         raise ValueError(f"out: cannot write {path}: {exc.strerror or exc}") from None
-    return ExportInfo(path, metadata, planning_dropped=run.planning.enabled, notes=notes, max_q_error=max_err)
+    return ExportInfo(path, metadata, planning_dropped=dropped, planner=plans, notes=notes, max_q_error=max_err,
+                      actions_differing=differing)
+
+
+@dataclass
+class ExportedModel:
+    """An exported model read back by :func:`read_exported`: its bytes, metadata and what they say."""
+
+    path: Path
+    payload: bytes
+    metadata: dict[str, str]
+    format_version: int
+    layout: str  # a key of LAYOUTS
+    run: RunConfig  # the checkpoint's config, its planner settings those of the model
+    frames: int | None
+    fixed_humans: int | None  # the N the model fixes (LSTM-RL), None: free
+
+    @property
+    def plans(self) -> bool:
+        """Whether the model holds the online planner."""
+        return self.metadata.get("crowdrl.policy") == "planner"
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The names of the model's inputs, in order."""
+        return LAYOUTS[self.layout]
+
+    def session(self, threads: int = 1):
+        """An onnxruntime CPU session of the model with ``threads`` intra-op threads (one inter-op)."""
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
+        return onnxruntime.InferenceSession(self.payload, options, providers=["CPUExecutionProvider"])
+
+
+def read_exported(path: Path | str) -> ExportedModel:
+    """Read and check a model written by :func:`export_onnx`. Refused with
+    :class:`~crowdrl.training.CheckpointError` naming the file and what differs: a missing, truncated or
+    corrupt file, one without crowdrl's metadata, a newer format version, an observation layout this code
+    does not know or inputs other than the layout's; ``ValueError`` when onnx or onnxruntime is missing."""
+    try:
+        import onnx
+        import onnxruntime  # noqa: F401  (the model is run with it)
+        from google.protobuf.message import DecodeError
+    except ImportError:
+        raise ValueError(f"checkpoint: {path}: reading an ONNX model needs onnx and onnxruntime: "
+                         "pip install 'crowdrl[export]'") from None
+    from crowdrl.training.compat import stored_config
+    from crowdrl.training.config import ConfigError, validate
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no ONNX model at {path} (write one with crowdrl-export)")
+    payload = path.read_bytes()
+    try:
+        model = onnx.load_from_string(payload)
+    except (DecodeError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path} is not a complete ONNX model (truncated or corrupt: {str(exc)[:120]})") from None
+    meta = {p.key: p.value for p in model.metadata_props}
+    if "crowdrl.config" not in meta:
+        raise CheckpointError(f"{path} holds no crowdrl metadata (crowdrl.config): truncated, or not written by "
+                              "crowdrl-export")
+    text = meta.get("crowdrl.format_version", "1")
+    if not text.isdigit():
+        raise CheckpointError(f"{path}: crowdrl.format_version {text!r} is not a version number")
+    version = int(text)
+    if version > FORMAT_VERSION:
+        raise CheckpointError(f"{path}: format version {version} is newer than this crowdrl reads (up to "
+                              f"{FORMAT_VERSION}); update crowdrl, or export the checkpoint again with this one")
+    names = tuple(i.name for i in model.graph.input)
+    if version == 1:  # the greedy Q policy; its layout is its inputs'
+        layout = next((k for k, v in LAYOUTS.items() if v == names and k != "world"), "unknown")
+        meta = {**meta, "crowdrl.policy": "greedy_q", "crowdrl.observation": layout}
+    layout = meta.get("crowdrl.observation", "")
+    if layout not in LAYOUTS:
+        known = "; ".join(f"{k} ({', '.join(v)})" for k, v in LAYOUTS.items())
+        raise CheckpointError(f"{path}: observation layout {layout!r} (inputs {', '.join(names)}) is not one this "
+                              f"crowdrl reads: {known}")
+    if names != LAYOUTS[layout]:
+        raise CheckpointError(f"{path}: its inputs {', '.join(names)} differ from its observation layout {layout!r} "
+                              f"({', '.join(LAYOUTS[layout])}): edited or foreign file")
+    if (meta.get("crowdrl.policy") == "planner") != (layout == "world"):
+        raise CheckpointError(f"{path}: crowdrl.policy {meta.get('crowdrl.policy')!r} does not fit observation layout "
+                              f"{layout!r}: edited or foreign file")
+    try:
+        run = validate(stored_config(json.loads(meta["crowdrl.config"])), resources=False)
+    except (ConfigError, ValueError, TypeError) as exc:
+        raise CheckpointError(f"{path}: its config (crowdrl.config) cannot be rebuilt by this code version: "
+                              f"{str(exc)[:200]}") from None
+    from dataclasses import replace
+
+    if meta.get("crowdrl.policy") == "planner":
+        try:
+            settings = {k: int(meta[f"crowdrl.planning_{k}"]) for k in ("depth", "width", "safety_horizon")}
+        except (KeyError, ValueError):
+            raise CheckpointError(f"{path}: its planner settings (crowdrl.planning_depth, _width, _safety_horizon) "
+                                  "are missing or not integers") from None
+        run = replace(run, planning=replace(run.planning, enabled=True, **settings))
+    else:
+        run = replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0))
+    humans = meta.get("crowdrl.humans", "")
+    fixed = int(humans[2:].split()[0]) if humans.startswith("N=") else None
+    frames = meta.get("crowdrl.frames", "")
+    return ExportedModel(path, payload, meta, version, layout, run, int(frames) if frames.isdigit() else None, fixed)
+
+
+def _random_world(batch: int, humans: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Plausible world-frame observations ``(robot [B, 9], humans [B, N, 5], humans_mask [B, N])``: the robot
+    and humans within a few metres, speeds about 1 m/s, goals a few metres away."""
+    g = torch.Generator().manual_seed(seed)
+    robot = torch.zeros(batch, 9)
+    robot[:, 0:2] = torch.randn(batch, 2, generator=g) * 3
+    robot[:, 2:4] = torch.randn(batch, 2, generator=g) * 0.5
+    robot[:, 4] = 0.3
+    robot[:, 5:7] = robot[:, 0:2] + torch.randn(batch, 2, generator=g) * 4
+    robot[:, 7] = 1.0
+    robot[:, 8] = (torch.rand(batch, generator=g) * 2 - 1) * torch.pi
+    crowd = torch.cat((robot[:, None, 0:2] + torch.randn(batch, humans, 2, generator=g) * 3,
+                       torch.randn(batch, humans, 2, generator=g) * 0.5, torch.full((batch, humans, 1), 0.3)), dim=-1)
+    mask = torch.rand(batch, humans, generator=g) > 0.2
+    mask[:, 0] = True
+    return robot, crowd, mask
+
+
+def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int, fixed_crowd: bool
+                                 ) -> tuple[float | None, int]:
+    """``(the largest Q or score difference, the actions that differ on near-ties)`` between onnxruntime and
+    the torch planner on random world-frame states (``(None, 0)`` without onnxruntime); ``RuntimeError`` for a
+    difference above 1e-4 or an action that differs where the scores do not tie within 1e-4."""
+    try:
+        import onnxruntime
+    except ImportError:
+        return None, 0
+    session = onnxruntime.InferenceSession(payload, providers=["CPUExecutionProvider"])
+    worst, differing = 0.0, 0
+    for batch, n, seed in ((64, humans, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1), 2)):
+        obs = _random_world(batch, n, seed)
+        with torch.no_grad():
+            q, action, _, cand, scores = policy(*obs)
+        got = session.run(["q_values", "action", "scores"], dict(zip(PLANNER_INPUTS, (t.numpy() for t in obs))))
+        worst = max(worst, float((torch.from_numpy(got[0]) - q).abs().max()),
+                    float((torch.from_numpy(got[2]) - scores).abs().max()))
+        differ = torch.from_numpy(got[1]) != action
+        if differ.any():
+            best = scores.amax(-1)
+            theirs = scores.gather(-1, (cand == torch.from_numpy(got[1])[:, None]).long().argmax(-1, keepdim=True))
+            if ((best - theirs.squeeze(-1))[differ] > 1e-4).any():
+                raise RuntimeError("the exported planner's actions differ from torch's where the scores do not tie")
+            differing += int(differ.sum())
+    if worst > 1e-4:
+        raise RuntimeError(f"the exported planner's Q values or scores differ from torch's by {worst:.2e} (> 1e-4)")
+    return worst, differing
 
 
 def _random_observations(batch: int, humans: int, seed: int, width: int = 5) -> tuple[Tensor, Tensor, Tensor]:
@@ -230,5 +480,6 @@ def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fix
     return worst
 
 
-__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "INPUTS", "OUTPUTS", "ExportInfo",
-           "GreedyQPolicy", "check_writable", "export_onnx"]
+__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "FORMAT_VERSION", "INPUTS", "LAYOUTS",
+           "OUTPUTS", "PLANNER_INPUTS", "PLANNER_OUTPUTS", "ExportInfo", "ExportedModel", "GreedyQPolicy",
+           "PlannerPolicy", "check_writable", "export_onnx", "read_exported"]

@@ -6,10 +6,12 @@
 This file imports nothing of crowdrl and is run by its path (``crowdrl-export`` prints it), never
 imported through the package: copy it onto the robot beside the model.
 
-Builds the observation of one robot among a few humans from world-frame states, in the robot's
-goal-aligned frame (the transform of ``crowdrl.envs.robot_centric.robot_centric``, written again
-in numpy below), runs the model and prints the greedy action, its command (speed, rotation) and
-the world-frame velocity the robot then drives at. Copy :func:`observation` into a robot's code.
+Builds the observation of one robot among a few humans from world-frame states and runs the model: an
+exported online planner (``crowdrl.policy`` ``planner``, every shipped agent) reads the world-frame states
+themselves (:func:`world_observation`); a greedy Q model reads them in the robot's goal-aligned frame (the
+transform of ``crowdrl.envs.robot_centric.robot_centric``, written again in numpy below:
+:func:`observation`). Prints the action, its command (speed, rotation) and the world-frame velocity the
+robot then drives at. Copy :func:`world_observation` or :func:`observation` into a robot's code.
 """
 
 from __future__ import annotations
@@ -89,6 +91,41 @@ def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None)
             "humans_mask": mask[None]}
 
 
+def world_observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
+    """The inputs of an exported planner for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame
+    as they are (``robot``, ``humans``), padded with absent rows (``humans_mask`` False) to ``slots`` rows when
+    the model fixes N; no human in view: one absent row. Non-finite states are refused (:func:`check_states`)."""
+    robot, humans = np.asarray(robot, np.float64), np.asarray(humans, np.float64)
+    if humans.size % len(HUMAN_FIELDS):
+        raise ValueError(f"humans: must be rows of the {len(HUMAN_FIELDS)} values {', '.join(HUMAN_FIELDS)}, "
+                         f"got shape {humans.shape}")
+    humans = humans.reshape(-1, len(HUMAN_FIELDS))
+    check_states(robot, humans)
+    n = humans.shape[0]
+    slots = max(n, 1) if slots is None else slots
+    if n > slots:
+        raise ValueError(f"the model takes at most {slots} humans, got {n}")
+    padded = np.zeros((slots, 5))
+    padded[:n] = humans
+    return {"robot": robot[None].astype(np.float32), "humans": padded[None].astype(np.float32),
+            "humans_mask": (np.arange(slots) < n)[None]}
+
+
+FORMAT_VERSION = 2  # the newest crowdrl.format_version this example reads (none: 1, a greedy Q model)
+
+
+def format_version_of(meta: dict[str, str]) -> int:
+    """The model's ``crowdrl.format_version`` (1 when absent); ``ValueError`` naming the field when it is not a
+    version number or is newer than :data:`FORMAT_VERSION`."""
+    text = meta.get("crowdrl.format_version", "1")
+    if not text.isdigit():
+        raise ValueError(f"metadata crowdrl.format_version: not a version number: {text!r}")
+    if int(text) > FORMAT_VERSION:
+        raise ValueError(f"metadata crowdrl.format_version: {text} is newer than this example reads "
+                         f"({FORMAT_VERSION}); use the onnx_example.py of the crowdrl that wrote the model")
+    return int(text)
+
+
 def time_step_of(meta: dict[str, str]) -> float:
     """The model's ``crowdrl.time_step`` metadata (seconds per step; 0.25 when absent); ``ValueError``
     naming the field unless it is a finite number > 0."""
@@ -118,14 +155,18 @@ def main(argv: list[str] | None = None) -> dict:
         p.error(f"model: {args.model} is not an ONNX model onnxruntime can load ({first[:200]})")
     meta = session.get_modelmeta().custom_metadata_map
     try:
+        format_version_of(meta)
         time_step = time_step_of(meta)
     except ValueError as exc:
-        p.error(f"model: {args.model}: {exc} (a model written by crowdrl-export holds the env's time step)")
+        p.error(f"model: {args.model}: {exc} (a model written by crowdrl-export holds it)")
     shapes = {i.name: i.shape for i in session.get_inputs()}
-    if "humans_rc" not in shapes:
+    planner = "humans" in shapes  # the exported online planner reads the world-frame states
+    rows = "humans" if planner else "humans_rc"
+    if rows not in shapes:
         p.error(f"model: {args.model} takes {sorted(shapes)} (a policy trained among obstacles reads entity tokens); "
-                "this example builds the open-space inputs robot_rc, humans_rc, humans_mask only (docs/export.md)")
-    n_axis = shapes["humans_rc"][1]
+                "this example builds the open-space inputs (robot, humans, humans_mask of a planner; robot_rc, "
+                "humans_rc, humans_mask of a greedy Q model) only (docs/export.md)")
+    n_axis = shapes[rows][1]
     slots = n_axis if isinstance(n_axis, int) else None  # an int: the model fixes N (pad); a name: free
 
     # the robot at (0, -4) heading north towards its goal (0, 4), driving at 0.5 m/s; three humans
@@ -133,21 +174,23 @@ def main(argv: list[str] | None = None) -> dict:
     humans = np.array([[0.3, -2.5, 0.0, -0.8, 0.3],    # coming straight at it
                        [-1.5, -1.0, 0.6, 0.0, 0.3],    # crossing from the left
                        [2.0, 1.0, 0.0, 0.0, 0.3]])     # standing
-    q, action, command = session.run(["q_values", "action", "command"], observation(robot, humans, slots))
+    feeds = world_observation(robot, humans, slots) if planner else observation(robot, humans, slots)
+    q, action, command = session.run(["q_values", "action", "command"], feeds)
     a = int(action[0])
     speed, rotation = (float(x) for x in command[0])
     heading = robot[8] + rotation  # the unicycle turns first, then drives straight for one step
     result = {"action": a, "q": float(q[0, a]), "speed": speed, "rotation": rotation,
               "angular_rate": rotation / time_step,
               "velocity_world": [speed * math.cos(heading), speed * math.sin(heading)],
-              "planning": meta.get("crowdrl.planning", "unknown")}
+              "policy": "planner" if planner else "greedy_q", "planning": meta.get("crowdrl.planning", "unknown")}
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"greedy action {a} (Q {result['q']:.4f}): speed {speed:.3f} m/s, rotation {rotation:+.4f} rad "
+        chooser = "planner" if planner else "greedy"
+        print(f"{chooser} action {a} (Q {result['q']:.4f}): speed {speed:.3f} m/s, rotation {rotation:+.4f} rad "
               f"({result['angular_rate']:+.3f} rad/s over the step)")
         print(f"world-frame velocity: vx {result['velocity_world'][0]:+.3f}, vy {result['velocity_world'][1]:+.3f} m/s")
-        if not result["planning"].startswith("off"):
+        if not result["planning"].startswith(("off", "on")):
             print(f"note: planning {result['planning']}")
     return result
 

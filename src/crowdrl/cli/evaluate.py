@@ -10,6 +10,8 @@
     python experiments/evaluate.py policy=orca hydra.run.dir=results/orca    # choose the output folder
     python experiments/evaluate.py checkpoint=runs/<folder> eval.ceiling=results/ceiling/circle.json  # gap to it
     python experiments/evaluate.py checkpoint=runs/<folder> eval.planning_depth=2   # act with a deeper planner
+    python experiments/evaluate.py checkpoint=runs/<folder> eval.planning_depth=0   # planning off: greedy on Q
+    python experiments/evaluate.py checkpoint=policy.onnx env=square   # an exported model, through onnxruntime
 
 Prints a Markdown table and writes ``eval.json`` / ``eval.csv`` (and a PNG and GIF of
 ``eval.record_episode``) into its Hydra run folder, whose path it prints: a new or empty folder

@@ -1,16 +1,19 @@
-"""Export a trained checkpoint's greedy Q policy as an ONNX model, for robots (Hydra entry point:
+"""Export a trained checkpoint's acting policy as an ONNX model, for robots (Hydra entry point:
 ``crowdrl-export``, ``python -m crowdrl.cli.export`` or ``python experiments/export.py`` in a checkout;
 needs the ``export`` extra: onnx, onnxruntime).
 
     python experiments/export.py checkpoint=runs/<folder> out=policy.onnx      # its checkpoints/best.pt
     python experiments/export.py checkpoint=path/to/best.pt out=models/policy.onnx opset=17
+    python experiments/export.py checkpoint=runs/<folder> out=greedy.onnx planning_depth=0   # greedy Q alone
 
-Inputs, outputs and metadata: ``docs/export.md`` and :mod:`crowdrl.export`. A checkpoint trained
-with online planning exports its Q policy only (it says so, here and in the model's metadata).
-``crowdrl/onnx_example.py`` (installed with the package; ``experiments/onnx_example.py`` in a checkout)
-runs the model with numpy and onnxruntime alone. An existing ``out`` file is replaced only with
-``overwrite=true``. A bad argument (checkpoint, out, format, opset, check, overwrite) exits with
-code 2 and a message naming it.
+A checkpoint that acts with online planning exports its planner whole (Q network, crowd predictor,
+look-ahead; depth, width and safety horizon the checkpoint's or ``planning_*``'s); ``planning_depth=0``
+exports its greedy Q policy alone, which acts differently (printed, and labelled in the metadata).
+Inputs, outputs and metadata: ``docs/export.md`` and :mod:`crowdrl.export`. ``crowdrl/onnx_example.py``
+(installed with the package; ``experiments/onnx_example.py`` in a checkout) runs the model with numpy and
+onnxruntime alone; ``evaluate.py checkpoint=<file>.onnx`` evaluates it on the test cases. An existing
+``out`` file is replaced only with ``overwrite=true``. A bad argument (checkpoint, out, format, opset,
+check, overwrite, planning_*) exits with code 2 and a message naming it; nothing is written then.
 """
 
 from __future__ import annotations
@@ -81,21 +84,25 @@ def main(cfg: DictConfig) -> dict:
     from crowdrl.training import CheckpointError
 
     try:
-        info = export_onnx(c.checkpoint, c.out, opset=c.opset, check=c.check)
+        info = export_onnx(c.checkpoint, c.out, opset=c.opset, check=c.check,
+                           planning={"depth": c.planning_depth, "width": c.planning_width,
+                                     "safety_horizon": c.planning_safety_horizon})
     except CheckpointError as exc:
         fail(f"checkpoint: {exc}")
-    except ValueError as exc:  # export_onnx names the argument (out)
+    except ValueError as exc:  # export_onnx names the argument (out, planning_*)
         fail(str(exc))
     except RuntimeError as exc:  # onnx missing, or the written model disagrees with torch
         exit_with_error("export", str(exc), code=1)
     for note in info.notes:
         print(f"NOTE: {note}")
     m = info.metadata
-    checked = f", Q within {info.max_q_error:.1e} of torch (onnxruntime)" if info.max_q_error is not None else ""
+    what = "Q and scores" if info.planner else "Q"
+    checked = f", {what} within {info.max_q_error:.1e} of torch (onnxruntime)" if info.max_q_error is not None else ""
     print(f"wrote {info.path} ({m['crowdrl.encoder']}, {m['crowdrl.exploration']}, humans: {m['crowdrl.humans']}, "
           f"planning: {m['crowdrl.planning'].split(':')[0]}{checked})")
     print(f"run it without torch: python {onnx_example()} {info.path}")
-    return {"path": str(info.path), "planning_dropped": info.planning_dropped}
+    print(f"evaluate it on the test cases: crowdrl-evaluate checkpoint={info.path}")
+    return {"path": str(info.path), "planning_dropped": info.planning_dropped, "planner": info.planner}
 
 
 if __name__ == "__main__":  # python -m crowdrl.cli.export

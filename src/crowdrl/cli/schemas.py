@@ -35,8 +35,8 @@ class EvalConfig:
     # a ceiling file of the same cases (experiments/ceiling.py): adds avoidable / unavoidable failures and the time
     # over the ceiling to the record
     ceiling: Optional[str] = None
-    # act with another planner than the checkpoint's (no retraining; null: the checkpoint's): its depth, width and
-    # run-time safety check (planning.safety_horizon)
+    # act with another planner than the checkpoint's (no retraining; null: the checkpoint's): its depth (0: planning
+    # off, greedy on Q), width and run-time safety check (planning.safety_horizon)
     planning_depth: Optional[int] = None
     planning_width: Optional[int] = None
     planning_safety_horizon: Optional[int] = None
@@ -74,6 +74,11 @@ class ExportConfig:
     opset: int = 17  # ONNX opset of the model, 14..20
     check: bool = True  # run the written model with onnxruntime and compare its Q values with torch's
     overwrite: bool = False  # replace an existing `out` file (refused otherwise)
+    # the exported planner's settings (null: the checkpoint's); planning_depth=0 exports a planning checkpoint's
+    # greedy Q policy alone (it acts differently; labelled in the model's metadata)
+    planning_depth: Optional[int] = None
+    planning_width: Optional[int] = None
+    planning_safety_horizon: Optional[int] = None
 
 
 @dataclass
@@ -92,6 +97,11 @@ class CeilingConfig:
     replay: bool = True  # step every solved path through CrowdNavEnv and refuse the file on a disagreement
     out: Optional[str] = None  # the JSON to write (default: ceiling-<scenario>-<split>-seed<seed>-<cases>.json)
     overwrite: bool = False  # replace an existing `out` file (refused otherwise)
+    # the exported planner's settings (null: the checkpoint's); planning_depth=0 exports a planning checkpoint's
+    # greedy Q policy alone (it acts differently; labelled in the model's metadata)
+    planning_depth: Optional[int] = None
+    planning_width: Optional[int] = None
+    planning_safety_horizon: Optional[int] = None
     threads: int = 1
 
 

@@ -210,8 +210,8 @@ class OnlinePlanner(TensorDictModuleBase):
                    else (humans_next[..., 0:2] - now[..., 0:2]) / cfg.time_step)
             step = step_reward(cfg, position, velocity, goal, now[:, None, :, 0:2].expand(M, A, N, 2),
                                vel[:, None].expand(M, A, N, 2), mask_a, walls, wall_mask)
-            hit |= step.collided & ~ended
-            ended |= step.reached
+            hit = hit | (step.collided & ~ended)  # out of place: ONNX export has no in-place or
+            ended = ended | step.reached
             position = position + velocity * cfg.time_step
         return ~hit
 
