@@ -185,8 +185,9 @@ def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None
 
 
 def gymnasium_face(record: Callable[[str, str, str, bool], None]) -> None:
-    """Issue 52, D11-D12: the Gymnasium env refuses an episode id past int64, unknown reset options and a
-    complex (or boolean) holonomic velocity, naming them, in one ValueError."""
+    """Issue 52, D11-D13: the Gymnasium env refuses an episode id past int64, unknown reset options and a
+    complex (or boolean) holonomic velocity, naming them, in one ValueError; the ONNX example a non-finite
+    state, and pads a view with no human."""
     import gymnasium as gym
     import numpy as np
 
@@ -211,6 +212,20 @@ def gymnasium_face(record: Callable[[str, str, str, bool], None]) -> None:
     hol.reset(seed=0)
     ok, observed = refused(lambda: hol.step(np.array([1 + 1j, 0])), "finite real velocity")
     record("holonomic Gymnasium step(np.array([1+1j, 0]))", "ValueError: a finite real velocity", observed, ok)
+    # D13: the ONNX example's inputs (onnxruntime and numpy only)
+    from crowdrl import onnx_example
+
+    robot = np.array([0.0, -4.0, np.nan, 0.5, 0.3, 0.0, 4.0, 1.0, np.pi / 2])
+    humans = np.array([[0.3, -2.5, 0.0, -0.8, 0.3]])
+    ok, observed = refused(lambda: onnx_example.observation(robot, humans), "robot:", "not finite")
+    record("onnx_example.observation, a NaN robot state", "ValueError naming the field", observed, ok)
+    robot[2] = 0.0
+    try:
+        alone = onnx_example.observation(robot, np.zeros((0, 5)))
+        ok, observed = not bool(alone["humans_mask"].any()), f"one absent row {alone['humans_rc'].shape}"
+    except Exception as exc:  # noqa: BLE001  (the defect: onnxruntime's Reshape error downstream, or any error)
+        ok, observed = False, f"{type(exc).__name__}: {str(exc)[:80]}"
+    record("onnx_example.observation, no human in view", "one absent row (humans_mask false)", observed, ok)
 
 
 def scalar_rows(folder: Path) -> list[dict]:
