@@ -79,6 +79,8 @@ def fingerprinted(config: dict) -> dict[str, Any]:
     train = dict(config.get("train", {}))
     if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":
         train.pop("counterfactual")  # off: the fingerprint of a run recorded before the key
+    if isinstance(train.get("demonstrations"), dict) and train["demonstrations"].get("cases", 0) == 0:
+        train.pop("demonstrations")  # off: the fingerprint of a run recorded before the key
     for key, off in _TRAIN_NEUTRAL.items():  # the stability levers at their defaults: as before the keys
         if key in train and train[key] == off:
             train.pop(key)

@@ -148,6 +148,18 @@ COUNTERFACTUAL_OFF = {"mode": "off", "actions": "topk", "k": 5, "weight": 0.5}
 
 
 @dataclass
+class DemonstrationConfig:
+    """The oracle as a teacher (:mod:`crowdrl.training.demonstrations`; docs/ceiling.md): before the first
+    collected batch of a fresh run, ``cases`` cases of the run's train stream (episode ids ``2**62 + i``, which
+    the collector never reaches) are solved by the oracle's beam search at ``widths`` (the first on every case,
+    each wider one on those still unsolved), and each path found, played through the training env, is stored in
+    the replay buffer as collected transitions are. Not counted as frames. 0: off."""
+
+    cases: int = 0
+    widths: list[int] = field(default_factory=lambda: [16, 64])
+
+
+@dataclass
 class TrainConfig:
     num_envs: int = 64  # environments stepped at once by the collector
     steps_per_batch: int = 8  # steps per environment per collected batch
@@ -172,6 +184,7 @@ class TrainConfig:
     # torch.compile graph (bench_train.py --loss)
     compile_loss: bool = True
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
+    demonstrations: DemonstrationConfig = field(default_factory=DemonstrationConfig)
     # stability levers (LEVERS_OFF: each off, the paper's learner): Polyak target updates after every
     # update (1: a hard copy every target_update_frames; 0.005 in the recommended learner, the default),
     # a Huber loss of this delta (null: squared error), the Q gradients' norm clipped (null: not), the

@@ -181,9 +181,10 @@ def _eval_crowd(scenario: str, humans: dict[str, Any], *, given: bool = True) ->
 ACT_KEYS = ("depth", "width", "safety_horizon")  # the planner settings an evaluation may change (eval.planning_*)
 
 
-def _act_with(run: RunConfig, acting: dict[str, int]) -> RunConfig:
+def act_with(run: RunConfig, acting: dict[str, int], prefix: str = "eval.planning_") -> RunConfig:
     """``run`` acting with the planner settings ``acting`` (names in :data:`ACT_KEYS`), checked as train checks
-    them; ``ValueError`` naming ``eval.planning_<key>``."""
+    them; ``ValueError`` naming ``<prefix><key>``. ``depth`` 0 turns planning off: the checkpoint then acts
+    greedily on Q (with no other planner setting given)."""
     from dataclasses import replace
 
     from crowdrl.training.validation import validate
@@ -191,15 +192,34 @@ def _act_with(run: RunConfig, acting: dict[str, int]) -> RunConfig:
     unknown = sorted(set(acting) - set(ACT_KEYS))
     if unknown:
         raise ValueError(f"planning: unknown {unknown}; allowed: {', '.join(ACT_KEYS)}")
+    depth = acting.get("depth")
+    if depth is not None and (isinstance(depth, bool) or not isinstance(depth, int) or depth < 0):
+        raise ValueError(f"{prefix}depth: must be an integer >= 0 (0: planning off, greedy on Q), got {depth!r}")
+    if depth == 0:
+        others = sorted(set(acting) - {"depth"})
+        if others:
+            raise ValueError(f"{prefix}{others[0]}: planning is off ({prefix}depth=0); leave {prefix}{others[0]} out")
+        return replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0))
     if not run.planning.enabled:
-        raise ValueError(f"eval.planning_{next(iter(acting))}: the checkpoint acts without planning (planning.enabled "
+        raise ValueError(f"{prefix}{next(iter(acting))}: the checkpoint acts without planning (planning.enabled "
                          "was false when it trained)")
     changed = replace(run, planning=replace(run.planning, **acting))
     try:
         validate(changed, resources=False)
     except ConfigError as exc:
-        raise ValueError(f"eval.{str(exc).replace('planning.', 'planning_', 1)}") from None
+        raise ValueError(str(exc).replace("planning.", prefix, 1)) from None
     return changed
+
+
+def is_onnx(checkpoint: Path | str | None) -> bool:
+    """Whether ``checkpoint`` names an exported ONNX model (a ``.onnx`` file) rather than a checkpoint."""
+    return checkpoint is not None and str(checkpoint).lower().endswith(".onnx")
+
+
+def acted(run: RunConfig, key: str) -> int:
+    """The planner setting ``key`` (of :data:`ACT_KEYS`) ``run`` acts with, for a record: 0 for ``depth`` and
+    ``safety_horizon`` when it acts without planning."""
+    return getattr(run.planning, key) if run.planning.enabled or key == "width" else 0
 
 
 def _read_ceiling(path: Path | str | None, cfg: CrowdConfig, seed: int, episodes: int):
@@ -248,8 +268,11 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     the argument. ``ceiling``: a ceiling file of the same test cases (:mod:`crowdrl.evaluation.ceiling`); the
     record then adds the avoidable and unavoidable failures and the time over the ceiling (a file of another
     stream is refused before anything runs, naming the mismatch). ``planning``: act with these of the
-    checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``; no retraining); the record
-    then shows them."""
+    checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``; no retraining; ``depth`` 0:
+    greedy on Q, planning off); the record then shows them. A ``checkpoint`` ending in ``.onnx`` is a model
+    written by ``crowdrl-export``, evaluated through onnxruntime (:class:`~crowdrl.policies.onnx_policy.OnnxPolicy`)
+    on the same cases and through the same rollout, with the same record (its policy name ending in ``+onnx``);
+    its planning is fixed at export (``planning`` refused), and it runs on the CPU."""
     from dataclasses import replace
 
     from crowdrl.evaluation import evaluate_orca
@@ -299,7 +322,24 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         shown = _humans_shown(vars(cfg)) if humans else {}
         return eval_record(metrics, scenario=cfg.scenario, seed=seed, policy="orca", **shown,
                            **_gap_fields(labels, ceiling, metrics)), traj
-    run, net, data = load_trained_network(checkpoint)
+    exported = None
+    if is_onnx(checkpoint):  # an exported policy, evaluated through onnxruntime
+        from crowdrl.export import read_exported
+
+        if device != "cpu":
+            raise ValueError(f"device: an ONNX model ({checkpoint}) is evaluated on the CPU through onnxruntime; "
+                             f"got {device!r}")
+        exported = read_exported(checkpoint)
+        if acting:
+            key = next(iter(acting))
+            m = exported.metadata
+            raise ValueError(f"eval.planning_{key}: {checkpoint}'s planning is fixed at export (planning_depth="
+                             f"{m.get('crowdrl.planning_depth', 0)}, planning_width={m.get('crowdrl.planning_width', 0)}, "
+                             f"planning_safety_horizon={m.get('crowdrl.planning_safety_horizon', 0)}); export it again "
+                             f"with planning_{key}=..., or evaluate the checkpoint")
+        run, net, data = exported.run, None, {"frames": exported.frames}
+    else:
+        run, net, data = load_trained_network(checkpoint)
     if device != run.device:
         run = replace(run, device=device)
     if humans or scenario is not None:  # the checkpoint's humans, with those given, in the scenario asked for
@@ -308,24 +348,36 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     if humans:
         run = replace(run, env=replace(run.env, **humans))
     if acting:
-        run = _act_with(run, acting)
+        run = act_with(run, acting)
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
                          f"states per step at {min(episodes, batch)} episodes at once, ~{planner / 2**30:,.1f} GiB, more "
                          f"than the {free / 2**30:,.1f} GiB of memory available; lower eval.batch")
     labels = _read_ceiling(ceiling, crowd_config(run, scenario=scenario, num_humans=num_humans), seed, episodes)
-    net.to(device)
-    predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
-    if predictor is not None:
-        predictor.to(device)
     scenario = scenario or run.env.scenario
-    metrics, traj = evaluate_network(run, net, scenario=scenario, seed=seed, episodes=episodes, num_humans=num_humans,
-                                     record_episode=record_episode, batch=batch, predictor=predictor)
+    if exported is not None:
+        from crowdrl.policies.onnx_policy import OnnxPolicy
+
+        env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario,
+                       num_humans=num_humans)
+        acting_policy = OnnxPolicy(exported, threads=torch.get_num_threads())
+        acting_policy.check_env(env)
+        metrics, traj = evaluate(env, acting_policy, num_episodes=episodes, record_episode=record_episode)
+        path = exported.path
+    else:
+        net.to(device)
+        predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
+        if predictor is not None:
+            predictor.to(device)
+        metrics, traj = evaluate_network(run, net, scenario=scenario, seed=seed, episodes=episodes,
+                                         num_humans=num_humans, record_episode=record_episode, batch=batch,
+                                         predictor=predictor)
+        path = checkpoint_path(checkpoint)
     record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}"
-                         + ("+planning" if run.planning.enabled else ""),
-                         checkpoint=str(checkpoint_path(checkpoint)), checkpoint_frames=data.get("frames"),
+                         + ("+planning" if run.planning.enabled else "") + ("+onnx" if exported is not None else ""),
+                         checkpoint=str(path), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed,
-                         **({f"planning_{k}": getattr(run.planning, k) for k in acting}),
+                         **({f"planning_{k}": acted(run, k) for k in acting}),
                          **(_humans_shown(vars(run.env)) if humans else {}), **_gap_fields(labels, ceiling, metrics))
     return record, traj

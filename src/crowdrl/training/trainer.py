@@ -15,6 +15,7 @@ through :class:`~crowdrl.auxiliary.AuxiliaryLearner` instances, what the update 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, fields
@@ -31,6 +32,7 @@ from crowdrl.sim.crowd import COLLISION, SUCCESS, TIMEOUT
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
+from crowdrl.training.demonstrations import add_demonstrations
 from crowdrl.training.factories import (buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
                                         make_exploration, make_learners, make_loss, make_optimizer, make_predictor_of,
                                         make_update_part, obs_keys, stored_keys)
@@ -39,6 +41,7 @@ from crowdrl.training.variants import make_network, replay_context
 
 
 TIMER_COUNTERS = ("collect_s", "update_s", "validate_s")
+_log = logging.getLogger(__name__)
 
 
 class NonFiniteError(FloatingPointError):
@@ -61,17 +64,25 @@ class Counters:
     collect_s: float = 0.0
     update_s: float = 0.0
     validate_s: float = 0.0
+    # the oracle's demonstrations (train.demonstrations): transitions stored before the first collected batch,
+    # and the seconds spent solving and playing them (not frames)
+    demo_transitions: int = 0
+    demo_s: float = 0.0
 
     def timers(self) -> dict[str, float]:
-        """The seconds spent so far as ``{"collect": ..., "update": ..., "validate": ...}``."""
-        return {name.removesuffix("_s"): getattr(self, name) for name in TIMER_COUNTERS}
+        """The seconds spent so far as ``{"collect": ..., "update": ..., "validate": ...}``, and ``"demo"``
+        (the oracle's demonstrations) in a run that has them."""
+        out = {name.removesuffix("_s"): getattr(self, name) for name in TIMER_COUNTERS}
+        if self.demo_s > 0:
+            out["demo"] = self.demo_s
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> "Counters":
-        """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter (the timers,
-        added later, are 0 in a checkpoint without them)."""
+        """The counters of a checkpoint; ``ValueError`` naming a missing or unknown counter (the timers
+        and the demonstrations' counters, added later, are 0 in a checkpoint without them)."""
         names = {f.name for f in fields(cls)}
-        data = {**dict.fromkeys(TIMER_COUNTERS, 0.0), **data}
+        data = {**dict.fromkeys(TIMER_COUNTERS, 0.0), "demo_transitions": 0, "demo_s": 0.0, **data}
         if set(data) != names:
             raise ValueError(f"its counters differ from this code's: missing {sorted(names - set(data))}, "
                              f"unknown {sorted(set(data) - names)}")
@@ -254,6 +265,8 @@ class Trainer:
             summary = self._summary()
             self.write_status("trained", **summary)
             return summary
+        if resume_data is None and t.demonstrations.cases > 0:  # a fresh run: once, before the first batch
+            self._add_demonstrations()
         collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
         if resume_data:  # the collector's set-up may draw random numbers: the stream continues from here
             self._set_rng(resume_data)
@@ -302,6 +315,26 @@ class Trainer:
         summary = self._summary()
         self.write_status("trained", **summary)
         return summary
+
+    def _add_demonstrations(self) -> None:
+        """The oracle's demonstrations into the replay buffer (:mod:`crowdrl.training.demonstrations`), logged
+        as a ``kind: demo`` row at frame 0; the global RNG is left as it was."""
+        run, d, c = self.run, self.run.train.demonstrations, self.counters
+        report = add_demonstrations(self.buffer, lambda n: make_env(run, split="train", num_envs=n), self.crowd_cfg,
+                                    run.seed, d.cases, d.widths, self.stored_keys)
+        c.demo_transitions = report.transitions
+        c.demo_s = report.search_s + report.play_s
+        _log.info("demonstrations: %d cases searched, %d solved, %d paths stored (%d transitions), %d unsolved, "
+                  "%d dropped by the replay; %.1f s searching, %.1f s playing", report.cases, report.solved,
+                  report.stored_paths, report.transitions, report.cases - report.solved,
+                  report.solved - report.stored_paths, report.search_s, report.play_s)
+        if not any(r.get("kind") == "demo" for r in self.log.rows()):  # a restart from scratch logged it already
+            self.emit({"kind": "demo", "frames": 0, "updates": 0, "episodes": 0,
+                       "train/demo_cases": report.cases, "train/demo_solved": report.solved,
+                       "train/demo_unsolved": report.cases - report.solved,
+                       "train/demo_dropped": report.solved - report.stored_paths,
+                       "train/demo_transitions": report.transitions,
+                       "time/demo_search_s": report.search_s, "time/demo_play_s": report.play_s})
 
     def _summary(self) -> dict[str, Any]:
         c = self.counters

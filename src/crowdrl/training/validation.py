@@ -116,6 +116,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
         check(value is None or value > 0, f"train.{key}", f"must be > 0 or null, got {value}")
     check(t.lr_end is None or 0 <= t.lr_end <= t.lr, "train.lr_end", f"must lie in [0, train.lr] or be null, got {t.lr_end}")
     check_counterfactual(run)
+    check_demonstrations(run)
     p = run.planning
     check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
     check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
@@ -199,6 +200,33 @@ def check_counterfactual(run: RunConfig) -> None:
                           f"after another action, which is exact only while they ignore the robot; with "
                           f"env.robot_visible=true the {who} humans react to it (set "
                           f"learner=plain, train.counterfactual.mode=off or env.robot_visible=false)")
+
+
+MAX_DEMO_WIDTH = 2048  # the ceiling's widest default beam: wider ones hold chunk x width x 81 children a depth
+
+
+def check_demonstrations(run: RunConfig) -> None:
+    """``train.demonstrations``: a case count in ``0..train.buffer_size`` (0: off; a case stores at least one
+    transition, so more cases than slots would overwrite each other), increasing beam widths in
+    ``1..MAX_DEMO_WIDTH``; on, it needs humans that ignore the robot (the oracle knows a case's crowd in
+    advance only then)."""
+    d, t = run.train.demonstrations, run.train
+    check(isinstance(d.cases, int) and not isinstance(d.cases, bool) and 0 <= d.cases <= t.buffer_size,
+          "train.demonstrations.cases", f"must be an integer in 0..train.buffer_size ({t.buffer_size}; 0: off), "
+          f"got {d.cases!r}")
+    widths = list(d.widths)
+    check(len(widths) > 0 and all(isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_DEMO_WIDTH
+                                  for w in widths), "train.demonstrations.widths",
+          f"must be a non-empty list of integers in 1..{MAX_DEMO_WIDTH}, got {widths!r}")
+    check(widths == sorted(set(widths)), "train.demonstrations.widths", f"must increase, got {widths!r}")
+    if d.cases > 0:
+        low, high = crowd_range(run.env)
+        humans = CrowdConfig(num_humans=high, min_humans=low if low < high else None,
+                             human_model=run.env.human_model, robot_visible=run.env.robot_visible,
+                             social_force_share=run.env.social_force_share, linear_share=run.env.linear_share)
+        check(not humans.humans_react_to_robot, "train.demonstrations.cases",
+              "the oracle solves a case only when its crowd is known in advance, i.e. the humans ignore the robot; "
+              "set env.robot_visible=false or train.demonstrations.cases=0")
 
 
 def check_threads(threads: Any, key: str = "threads") -> None:
