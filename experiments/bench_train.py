@@ -6,6 +6,7 @@
     python experiments/bench_train.py --loss eager compiled      # what compiling the update buys
     python experiments/bench_train.py --encoders sgd3qn sarl lstm_rl mp_rgl   # per-update cost of each encoder
     python experiments/bench_train.py --planning --counterfactual-k 0 5 81   # counterfactual experience's cost
+    python experiments/bench_train.py --counterfactual-k 0 5 --counterfactual-modes second_update merged
 
 One row per (encoder, exploration, loss); ``--json`` prints ``{"meta": ..., "rows": [...]}`` (the
 shared format of ``benchkit.py``).
@@ -50,16 +51,16 @@ def matmul_mflop_per_update(loss, sample) -> float:
     return counter.get_total_flops() / 1e6
 
 
-def counterfactual_of(k: int) -> dict:
-    """``train.counterfactual`` for ``--counterfactual-k``: 0 off, 81 every action, else the top k by Q
-    (each a second update after the real one, SG-D3QN's arrangement)."""
+def counterfactual_of(k: int, mode: str = "second_update") -> dict:
+    """``train.counterfactual`` for ``--counterfactual-k``: 0 off, 81 every action, else the top k by Q;
+    ``mode``: a second update after the real one (SG-D3QN's arrangement) or one ``merged`` update."""
     if k == 0:
         return {"mode": "off"}
-    return {"mode": "second_update", **({"actions": "all"} if k == 81 else {"actions": "topk", "k": k})}
+    return {"mode": mode, **({"actions": "all"} if k == 81 else {"actions": "topk", "k": k})}
 
 
 def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Namespace,
-            counterfactual_k: int = 0) -> tuple[dict, tuple]:
+            counterfactual_k: int = 0, counterfactual_mode: str = "second_update") -> tuple[dict, tuple]:
     """Collection rate and per-update breakdown (ms) for one exploration variant, and the
     (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
@@ -73,7 +74,7 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
                     "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
                                                       "compile_loss": loss_backend == "compiled",
                                                       "compile_acting": args.acting == "compiled",
-                              "counterfactual": counterfactual_of(counterfactual_k)},
+                              "counterfactual": counterfactual_of(counterfactual_k, counterfactual_mode)},
                     "planning": {"enabled": args.planning}})
     tr = Trainer(run, "/tmp/crowdrl-bench-train")
     torch.set_num_threads(args.threads)
@@ -127,6 +128,7 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     # what one update may cost for collection + updates to fit in one hour at this collection rate
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
     return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "counterfactual_k": counterfactual_k,
+            "counterfactual_mode": counterfactual_mode if counterfactual_k else "off",
             "collect_frames_per_s": frames_per_s,
             "update_ms": update_ms,
             "update_breakdown_ms": ms, "updates_per_s": 1e3 / update_ms, "paper_budget_hours": hours,
@@ -154,6 +156,8 @@ def main(argv: list[str] | None = None) -> dict:
                    help="act with the online planner and train its predictor (planning.enabled=true)")
     p.add_argument("--counterfactual-k", type=int, nargs="+", default=[0],
                    help="counterfactual transitions per sampled state: 0 off (default), 1..80 the top k by Q, 81 all")
+    p.add_argument("--counterfactual-modes", nargs="+", default=["second_update"], choices=["second_update", "merged"],
+                   help="train.counterfactual.mode of each k > 0 (one row each; default second_update)")
     add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
@@ -172,8 +176,9 @@ def main(argv: list[str] | None = None) -> dict:
     unknown = sorted(set(args.encoders) - set(ENCODERS))
     if unknown:
         p.error(f"--encoders: unknown {unknown}; allowed: {sorted(ENCODERS)}")
-    measured = [measure(e, x, backend, args, k) for e in args.encoders for x in args.explorations for backend in args.loss
-                for k in args.counterfactual_k]
+    measured = [measure(e, x, backend, args, k, mode) for e in args.encoders for x in args.explorations
+                for backend in args.loss for k in args.counterfactual_k
+                for mode in (args.counterfactual_modes if k else ["second_update"])]
     results = [r for r, _ in measured]
     for r, probe in measured:  # after every timing (see matmul_mflop_per_update)
         r["matmul_mflop_per_update"] = mflop = matmul_mflop_per_update(*probe)
@@ -184,11 +189,12 @@ def main(argv: list[str] | None = None) -> dict:
     for r in results:
         r["update_cost_vs_first"] = r["update_ms"] / base
     meta = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders,
-            "batch_size": 100, "counterfactual_k": args.counterfactual_k,
+            "batch_size": 100, "counterfactual_k": args.counterfactual_k, "counterfactual_modes": args.counterfactual_modes,
             "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning}
     first = results[0]
     part = lambda k: Column(lambda r: r["update_breakdown_ms"][k], f"{k} ms", ".2f")  # noqa: E731
     columns = [Column("encoder"), Column("exploration"), Column("loss"), Column("counterfactual_k", "counterfactual k"),
+               Column("counterfactual_mode", "mode"),
                Column("collect_frames_per_s", "collect frames/s", ",.0f"), Column("update_ms", "update ms", ".2f"),
                Column("updates_per_s", "updates/s", ".1f"), part("sample"), part("loss_and_grad"), part("optimizer"),
                Column("update_cost_vs_first", "vs first", ".2f"),
@@ -199,8 +205,8 @@ def main(argv: list[str] | None = None) -> dict:
              f"acting {args.acting}" + (", planning" if args.planning else "")
              + f"; update cost relative to the first row ({first['encoder']}, {first['exploration']}, {first['loss']} loss)")
     notes = ["collect frames/s: env + acting policy through the TorchRL collector; update = sample + loss_and_grad + "
-             "optimizer (ms each; optimizer: from the first optimiser step on, with counterfactual k > 0 the whole second "
-             "update on the counterfactual batch); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
+             "optimizer (ms each; optimizer: from the first optimiser step on, with counterfactual k > 0 and second_update the "
+             "whole second update on the counterfactual batch; merged: one step, the counterfactual batch in loss_and_grad); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
              "updates projected at these rates; 1 h needs: the update time that fits both in one hour"]
     return emit(results, columns=columns, title=title, meta=meta, as_json=args.json, notes=notes)
 

@@ -204,15 +204,23 @@ class D3QNLoss(LossModule):
     @torch.no_grad()
     def bootstrap(self, params: dict[str, Tensor] | None, target_params: dict[str, Tensor] | None,
                   b: D3QNBatch) -> Tensor:
-        """The n-step double-DQN target ``y`` ``[n, g]`` (no gradient); ``None`` params: the networks' own."""
-        q_target = self._q(self.target_net, target_params, b.next_obs)
-        if self.double:
-            best = self._q(self.net, params, b.next_obs).argmax(-1, keepdim=True)
-            boot = q_target.gather(-1, best).squeeze(-1)
-        else:
-            boot = q_target.amax(-1)
-        boot = boot.reshape(b.action.shape)
-        return b.reward + self.gamma ** b.steps.to(boot.dtype) * boot * (~b.terminated)
+        """The n-step double-DQN target ``y`` ``[n, g]`` (no gradient); ``None`` params: the networks' own.
+
+        The ``n·g`` bootstrap states are evaluated ``n`` rows at a time (``g`` chunks; a sampled batch is
+        one), target then online network on each chunk: each row's value is the same, and a grouped
+        batch's passes keep the working set of a sampled batch's (on CPU ~20 % faster at ``g = 5``,
+        docs/benchmarks.md, than both networks on all ``n·g`` rows in one graph)."""
+        n = b.action.shape[0]
+        boot = []
+        for chunk in zip(*(o.split(n) for o in b.next_obs)):
+            q_target = self._q(self.target_net, target_params, chunk)
+            if self.double:
+                best = self._q(self.net, params, chunk).argmax(-1, keepdim=True)
+                boot.append(q_target.gather(-1, best).squeeze(-1))
+            else:
+                boot.append(q_target.amax(-1))
+        value = (boot[0] if len(boot) == 1 else torch.cat(boot)).reshape(b.action.shape)
+        return b.reward + self.gamma ** b.steps.to(value.dtype) * value * (~b.terminated)
 
     def objective(self, params: dict[str, Tensor] | None, b: D3QNBatch, y: Tensor
                   ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
