@@ -91,7 +91,7 @@ class ExplorationConfig:
     name: str = "egreedy"
     eps_start: float = 0.5
     eps_end: float = 0.1
-    anneal_frames: int = 100_000  # the demo's; the paper's 4000 episodes (200k) in exploration/*.yaml
+    anneal_frames: int = 40_000  # the demo's; the paper's 4000 episodes (200k) in exploration/*.yaml
     sigma0: float = 0.5  # noisy: factorised NoisyLinear σ0
     dropout_start: float = 0.5  # dropout: p decays linearly start -> end over anneal_frames
     dropout_end: float = 0.01
@@ -163,7 +163,7 @@ class DemonstrationConfig:
 class TrainConfig:
     num_envs: int = 64  # environments stepped at once by the collector
     steps_per_batch: int = 8  # steps per environment per collected batch
-    total_frames: int = 200_000  # the demo's budget; the paper's 10k episodes (500k frames): preset=paper
+    total_frames: int = 80_000  # the demo's budget; the paper's 10k episodes (500k frames): preset=paper
     buffer_size: int = 100_000
     batch_size: int = 100
     n_step: int = 1
