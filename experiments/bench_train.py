@@ -206,7 +206,8 @@ def main(argv: list[str] | None = None) -> dict:
              + f"; update cost relative to the first row ({first['encoder']}, {first['exploration']}, {first['loss']} loss)")
     notes = ["collect frames/s: env + acting policy through the TorchRL collector; update = sample + loss_and_grad + "
              "optimizer (ms each; optimizer: from the first optimiser step on, with counterfactual k > 0 and second_update the "
-             "whole second update on the counterfactual batch; merged: one step, the counterfactual batch in loss_and_grad); matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
+             "whole second update on the counterfactual batch; merged: one step, the counterfactual batch in loss_and_grad); "
+             "matmul MFLOP: forward + backward per update; paper budget: 500k frames + 500k "
              "updates projected at these rates; 1 h needs: the update time that fits both in one hour"]
     return emit(results, columns=columns, title=title, meta=meta, as_json=args.json, notes=notes)
 

@@ -126,7 +126,8 @@ def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None
     """Issue 52, D1-D15: values refused at start naming the key (no folder), SIGTERM to evaluate.py handled
     as Ctrl-C, a combination that crashed at its first update now trains, a hand-edited record refused, the
     Gymnasium face's bad options and actions refused."""
-    for i, (name, args, words) in enumerate((("train", [*SMOKE, "env=room", "env.room_pillars=1000"], ["env.room_pillars (1000)"]),
+    for i, (name, args, words) in enumerate((("train", [*SMOKE, "env=room", "env.room_pillars=1000"],
+                                               ["env.room_pillars (1000)"]),
                               ("train", [*SMOKE, "env=room", "env.room_pillar_min=5", "env.room_pillar_max=20"],
                                ["env.room_pillars"]),
                               ("train", [*SMOKE, "env=room", "env.num_humans=64"], ["env.num_humans (64)", "at most 18"]),

@@ -4,7 +4,8 @@ a teacher").
 Reads run folders (their ``config.yaml`` and ``scalars.jsonl``; validation rows only, never test results) and
 prints, per run: the collected frames at the first validation whose success reaches ``--threshold`` (0.95), the
 training minutes to that validation, the best validation success and where it was reached, the mean success
-over all its validations (the area under the validation curve, per validation), and the demonstrations stored. Runs are grouped by ``train.demonstrations.cases`` (0: without).
+over all its validations (the area under the validation curve, per validation), and the demonstrations stored.
+Runs are grouped by ``train.demonstrations.cases`` (0: without).
 
 The minutes are the run's own timers (``time/*_s`` of its ``train`` rows: collection, updates, validation and,
 with demonstrations, the oracle's search and replay), read at the first ``train`` row at or after the
@@ -80,7 +81,8 @@ def table(records: list[dict[str, Any]], threshold: float) -> str:
         groups.setdefault(r["demo_cases"], []).append(r)
         lines.append(f"| {r['demo_cases'] or 'none'} | {r['seed']} | {_cell(r['frames_to_threshold'], 0, 1000)} | "
                      f"{_cell(r['minutes_to_threshold'])} | {r['best_val_success']:.2f} "
-                     f"({r['best_val_frames'] / 1000:.0f}) | {r['mean_val_success']:.3f} | {r['demo_transitions']} ({r['demo_solved']}) | "
+                     f"({r['best_val_frames'] / 1000:.0f}) | {r['mean_val_success']:.3f} | "
+                     f"{r['demo_transitions']} ({r['demo_solved']}) | "
                      f"{r['demo_minutes']:.1f} |")
     for cases, rs in groups.items():
         hit = [r for r in rs if r["frames_to_threshold"] is not None]

@@ -151,7 +151,8 @@ def test_the_run_config_takes_the_keys_and_a_run_at_their_defaults_keeps_its_fin
     from crowdrl.training.config import ConfigError, to_dict
     from crowdrl.training.factories import crowd_config
 
-    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}  # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}
     now = to_dict(validate(plain, resources=False))
     new_keys = ("human_model", "robot_visible", "sf_tau", "sf_v0", "sf_sigma", "sf_substeps")
     before = {**now, "env": {k: v for k, v in now["env"].items() if k not in new_keys}}

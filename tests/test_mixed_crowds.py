@@ -229,7 +229,8 @@ def test_the_run_config_takes_the_shares_and_the_default_fingerprint_is_unchange
     from crowdrl.training.config import ConfigError, to_dict
     from crowdrl.training.factories import crowd_config
 
-    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}  # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    # the learner the keys were recorded with (visible robots need it: no counterfactual)
+    plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}
     now = to_dict(validate(plain, resources=False))
     before = {**now, "env": {k: v for k, v in now["env"].items() if k not in ("social_force_share", "linear_share")}}
     assert config_fingerprint(now) == config_fingerprint(before)

@@ -16,7 +16,8 @@ LEVERS = {"target_tau": 0.01, "huber_delta": 1.0, "grad_clip_norm": 5.0, "lr_end
 
 
 def test_levers_at_their_defaults_keep_the_fingerprint_and_each_one_set_changes_it():
-    base = validate({"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}, resources=False)  # every lever off: the learner the keys were recorded with
+    # every lever off: the learner the keys were recorded with
+    base = validate({"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}, resources=False)
     stored = to_dict(base)
     for key in LEVERS:  # a config recorded before the keys
         stored["train"].pop(key)
