@@ -45,3 +45,81 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     short = subprocess.run([*cmd[:-4], "--last", "9", "--group", "A=" + str(a[0]), "--group", "B=" + str(b[0])],
                            capture_output=True, text=True, timeout=120)
     assert short.returncode != 0 and "fewer than --last 9" in short.stderr
+
+
+def _compare(*args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "experiments" / "compare_runs.py"), "--reps", "200", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+def test_val_split_names_the_episodes_the_validations_held(tmp_path):
+    from tests.test_sweep_summary import fake_run
+
+    runs = [fake_run(tmp_path / f"r{s}", [f"seed={s}"], frames=512) for s in range(2)]
+    proc = _compare("--split", "val", "--last", "2", "--out", str(tmp_path / "out"),
+                    "--group", f"A={runs[0]}", "--group", f"B={runs[1]}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    text = (tmp_path / "out" / "table.md").read_text()
+    assert "(2 x 4 episodes at the end of training)" in text and "x 100" not in text
+
+
+def test_run_folders_of_a_sweep_commas_and_all_compare_on_train_pys_own_test(tmp_path):
+    """Paths with commas are joined back; a run folder as train.py writes it (top-level eval.json) counts
+    for its training scenario, and an eval-<scenario>/eval.json beside it is preferred."""
+    from tests.test_sweep_summary import fake_sweep
+
+    sweep = fake_sweep(tmp_path / "multirun" / "s", [(["exploration.beta=0.005", "exploration=re3", f"seed={s}"],
+                                                      {"success": 0.5 + 0.1 * s}) for s in range(2)]
+                       + [(["exploration.beta=0.01", "exploration=re3", f"seed={s}"], {"success": 0.8}) for s in range(2)])
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    assert all("," in j.name for j in jobs)
+    other = {**json.loads((jobs[2] / "eval.json").read_text())["metrics"], "episodes": 100, "success_rate": 0.1,
+             "collision_rate": 0.1, "timeout_rate": 0.8, "scenario": "circle", "seed": 0,
+             "min_separation": 0.07}
+    (jobs[2] / "eval-circle").mkdir()
+    (jobs[2] / "eval-circle" / "eval.json").write_text(json.dumps(other))
+    out = tmp_path / "out"
+    proc = _compare("--out", str(out), "--json", "--group", f"low={jobs[0]},{jobs[1]}",
+                    "--group", f"high={jobs[2]},{jobs[3]}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout)
+    assert result["groups"]["low"] == [str(jobs[0]), str(jobs[1])]
+    rows = {r["group"]: r for r in result["rows"]}
+    assert [r["scenario"] for r in result["rows"]] == ["circle", "circle"]  # the one scenario every run holds
+    assert rows["low"]["success_rate_per_seed"] == pytest.approx([0.5, 0.6])
+    assert rows["high"]["success_rate_per_seed"] == pytest.approx([0.1, 0.8])  # eval-circle/eval.json first
+    assert rows["high"]["episodes_per_seed"] == [100, 8] and "8/100 test cases per run" in (out / "table.md").read_text()
+    # a scenario a run holds no record on: one line naming the run and the record, nothing written
+    missing = _compare("--out", str(tmp_path / "new"), "--scenarios", "square", "--group", f"low={jobs[0]}",
+                       "--group", f"high={jobs[2]}")
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
+    assert f"--group 'low': {jobs[0]}: no eval-square/eval.json, its own test (eval.json) is on circle" in missing.stderr
+    assert not (tmp_path / "new").exists()
+
+
+def test_two_sweeps_compare_in_one_command(tmp_path):
+    from tests.test_sweep_summary import fake_sweep
+
+    a = fake_sweep(tmp_path / "A", [(["exploration=egreedy", f"seed={s}"], {"success": 0.5}) for s in range(3)])
+    b = fake_sweep(tmp_path / "B", [(["exploration.beta=0.005", "exploration=re3", "seed=0"], {"success": 0.9}),
+                                    (["exploration.beta=0.005", "exploration=re3", "seed=1"], {"state": "failed"}),
+                                    (["exploration.beta=0.01", "exploration=re3", "seed=0"], {"success": 0.7})])
+    out = tmp_path / "out"
+    proc = _compare("--sweep", str(a), "--sweep", str(b), "--out", str(out), "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = {r["group"]: r for r in json.loads(proc.stdout)["rows"]}
+    assert list(rows) == ["A: exploration=egreedy", "B: exploration.beta=0.005", "B: exploration.beta=0.01"]
+    assert rows["A: exploration=egreedy"]["seeds"] == 3 and rows["B: exploration.beta=0.005"]["seeds"] == 1
+    assert rows["B: exploration.beta=0.005"]["p_improve"] == 1.0
+    assert "left out (not completed)" in proc.stderr and "seed=1 (failed)" in proc.stderr
+    assert "## circle" in (out / "table.md").read_text()
+    # a group and a sweep mix, in command-line order; a label given twice and a folder that is no sweep: refused
+    mixed = _compare("--group", f"base={next(p for p in a.iterdir() if p.is_dir())}", "--sweep", str(b),
+                     "--out", str(tmp_path / "mixed"), "--json")
+    assert mixed.returncode == 0 and json.loads(mixed.stdout)["rows"][0]["group"] == "base"
+    for args, words in ((["--sweep", str(a), "--sweep", str(a)], "--sweep: the label 'A: exploration=egreedy'"),
+                        (["--sweep", str(a), "--sweep", str(tmp_path)], "--sweep: "),
+                        (["--sweep", str(a), "--sweep", str(tmp_path / "none")], "is not a folder")):
+        bad = _compare(*args, "--out", str(tmp_path / "bad"))
+        assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and words in bad.stderr, bad.stderr
+    assert not (tmp_path / "bad").exists()

@@ -48,6 +48,10 @@ PAPER = {
 def parse_run_group(text: str) -> tuple[str, list[Path]]:
     """A ``LABEL=RUN[,RUN...]`` group of runs (folders, one per seed), each of which must exist.
 
+    A folder whose name holds commas (a Hydra sweep's ``0-a=1,b=2``) is found by joining the
+    comma-separated pieces back together: at each piece, the longest run of pieces that names an
+    existing path is taken first.
+
     >>> parse_run_group("ε-greedy=.,.")
     ('ε-greedy', [PosixPath('.'), PosixPath('.')])
 
@@ -55,12 +59,23 @@ def parse_run_group(text: str) -> tuple[str, list[Path]]:
     """
     label, sep, folders = text.partition("=")
     label = label.strip()
-    runs = [Path(f.strip()) for f in folders.split(",") if f.strip()]
-    if not sep or not label or not runs:
+    pieces = folders.split(",")
+    if not sep or not label or not any(p.strip() for p in pieces):
         raise ValueError(f"expected 'LABEL=RUN[,RUN...]', got {text!r}")
-    for run in runs:
-        if not run.exists():
-            raise ValueError(f"{label!r}: {run} does not exist")
+    runs: list[Path] = []
+    i = 0
+    while i < len(pieces):
+        if not pieces[i].strip():  # an empty piece: a stray or trailing comma
+            i += 1
+            continue
+        for j in range(len(pieces), i, -1):  # the longest existing path first
+            candidate = ",".join(pieces[i:j]).strip()
+            if candidate and Path(candidate).exists():
+                runs.append(Path(candidate))
+                i = j
+                break
+        else:
+            raise ValueError(f"{label!r}: {pieces[i].strip()} does not exist")
     return label, runs
 
 
@@ -229,3 +244,56 @@ def read_run_eval_record(path: Path | str, run_dir: Path | str) -> dict[str, Any
     """An ``eval.json`` record of the run in ``run_dir`` read back (:func:`read_eval_record`) and cross-checked
     against the run's ``summary.json`` (:func:`check_against_summary`)."""
     return check_against_summary(read_eval_record(path), path, run_dir)
+
+
+def read_own_test_record(run_dir: Path | str) -> dict[str, Any]:
+    """The test a training run made of itself (``train.py``'s top-level ``eval.json``: its best
+    checkpoint on its training scenario; ``summary.json``'s ``test`` when ``eval.json`` is missing), as a flat
+    ``eval.json``-style record (:data:`REPORT_FIELDS`, ``episodes``, ``seed``, ``scenario`` from its
+    ``config.yaml``, ``checkpoint_frames``); :class:`RecordError` naming the file and field otherwise."""
+    run_dir = Path(run_dir)
+    path = run_dir / "eval.json"
+    if path.is_file():
+        test = read_json_record(path)
+        metrics = check_metrics(test.get("metrics"), f"{path}: metrics", separation_key="discomfort_min_separation")
+    elif (run_dir / "summary.json").is_file():
+        path = run_dir / "summary.json"
+        test = read_summary(path)["test"]
+        metrics = test["metrics"]
+    else:
+        raise RecordError(f"{run_dir}: no eval.json or summary.json (not a finished training run)")
+    record: dict[str, Any] = {key: metrics.get(field) for key, field in REPORT_FIELDS.items()}
+    record.update(episodes=metrics["episodes"], seed=test.get("test_seed"), scenario=_run_scenario(run_dir, {}),
+                  checkpoint_frames=test.get("checkpoint_frames"), source=str(path))
+    return record
+
+
+def run_test_scenarios(run_dir: Path | str) -> list[str]:
+    """The scenarios the run in ``run_dir`` holds a test record on: each ``eval-<scenario>/eval.json``,
+    and its training scenario when ``train.py`` tested it (a top-level ``eval.json`` or ``summary.json``)."""
+    run_dir = Path(run_dir)
+    found = {p.parent.name[len("eval-"):] for p in run_dir.glob("eval-*/eval.json")}
+    if (run_dir / "eval.json").is_file() or (run_dir / "summary.json").is_file():
+        scenario = _run_scenario(run_dir, {})
+        if isinstance(scenario, str):
+            found.add(scenario)
+    return sorted(found)
+
+
+def read_run_test_record(run_dir: Path | str, scenario: str) -> dict[str, Any]:
+    """The run's test record on ``scenario``: ``eval-<scenario>/eval.json`` when present
+    (:func:`read_run_eval_record`), else the run's own test when it trained on ``scenario``
+    (:func:`read_own_test_record`); :class:`RecordError` saying which record is missing otherwise."""
+    run_dir = Path(run_dir)
+    path = run_dir / f"eval-{scenario}" / "eval.json"
+    if path.is_file():
+        return read_run_eval_record(path, run_dir)
+    if (run_dir / "eval.json").is_file() or (run_dir / "summary.json").is_file():
+        trained = _run_scenario(run_dir, {})
+        if trained == scenario:
+            return read_own_test_record(run_dir)
+        where = f"its own test (eval.json) is on {trained}" if trained else "it has no config.yaml naming its scenario"
+    else:
+        where = "and no test of its own (eval.json)"
+    raise RecordError(f"{run_dir}: no eval-{scenario}/eval.json, {where}; test it there with evaluate.py "
+                      f"checkpoint=<run> env={scenario} hydra.run.dir=<run>/eval-{scenario}")
