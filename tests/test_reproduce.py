@@ -313,7 +313,9 @@ def test_compare_runs_agrees_with_the_reproduce_table(reproduced, tmp_path):
     assert ours[("re3", "circle")]["p_improve"] == pytest.approx(theirs[("re3", "circle")]["p_improve"])
     assert "p_improve" not in ours[("egreedy", "circle")] and (tmp_path / "table.md").exists()
     bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}"])
-    assert bad.returncode != 0 and "has no eval-circle/eval.json" in bad.stderr
+    assert bad.returncode == 2 and "no test record on a scenario in common" in bad.stderr
+    bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}", "--scenarios", "circle"])
+    assert bad.returncode == 2 and "circle" in bad.stderr and "Traceback" not in bad.stderr
 
 
 @pytest.mark.parametrize("exploration, anneal", [("egreedy", 200_000), ("re3", 200_000)])
