@@ -68,47 +68,46 @@ def check_states(robot: np.ndarray, humans: np.ndarray) -> None:
                          "states, or leave out a human the robot cannot see")
 
 
-def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
-    """The model's inputs for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame,
-    padded with absent rows (``humans_mask`` False) to ``slots`` rows when the model fixes N. No human
-    in view (``n = 0``): one absent row (the models are padding-invariant and need a row to run).
-    Non-finite states are refused (:func:`check_states`)."""
+def _checked(robot: np.ndarray, humans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``robot [9]`` and ``humans [n, 5]`` as float64 arrays, their shape and finiteness checked."""
     robot, humans = np.asarray(robot, np.float64), np.asarray(humans, np.float64)
     if humans.size % len(HUMAN_FIELDS):
         raise ValueError(f"humans: must be rows of the {len(HUMAN_FIELDS)} values {', '.join(HUMAN_FIELDS)}, "
                          f"got shape {humans.shape}")
     humans = humans.reshape(-1, len(HUMAN_FIELDS))
     check_states(robot, humans)
-    robot_rc, humans_rc = robot_centric(robot, humans)
-    n = humans_rc.shape[0]
+    return robot, humans
+
+
+def _padded(rows: np.ndarray, slots: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """``rows [n, 5]`` padded with absent rows to ``slots`` (default ``max(n, 1)``), and the presence mask."""
+    n = rows.shape[0]
     slots = max(n, 1) if slots is None else slots
     if n > slots:
         raise ValueError(f"the model takes at most {slots} humans, got {n}")
     padded = np.zeros((slots, 5))
-    padded[:n] = humans_rc
-    mask = np.arange(slots) < n
-    return {"robot_rc": robot_rc[None].astype(np.float32), "humans_rc": padded[None].astype(np.float32),
-            "humans_mask": mask[None]}
+    padded[:n] = rows
+    return padded[None].astype(np.float32), (np.arange(slots) < n)[None]
+
+
+def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
+    """The model's inputs for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame,
+    padded with absent rows (``humans_mask`` False) to ``slots`` rows when the model fixes N. No human
+    in view (``n = 0``): one absent row (the models are padding-invariant and need a row to run).
+    Non-finite states are refused (:func:`check_states`)."""
+    robot, humans = _checked(robot, humans)
+    robot_rc, humans_rc = robot_centric(robot, humans)
+    padded, mask = _padded(humans_rc, slots)
+    return {"robot_rc": robot_rc[None].astype(np.float32), "humans_rc": padded, "humans_mask": mask}
 
 
 def world_observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
     """The inputs of an exported planner for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame
     as they are (``robot``, ``humans``), padded with absent rows (``humans_mask`` False) to ``slots`` rows when
     the model fixes N; no human in view: one absent row. Non-finite states are refused (:func:`check_states`)."""
-    robot, humans = np.asarray(robot, np.float64), np.asarray(humans, np.float64)
-    if humans.size % len(HUMAN_FIELDS):
-        raise ValueError(f"humans: must be rows of the {len(HUMAN_FIELDS)} values {', '.join(HUMAN_FIELDS)}, "
-                         f"got shape {humans.shape}")
-    humans = humans.reshape(-1, len(HUMAN_FIELDS))
-    check_states(robot, humans)
-    n = humans.shape[0]
-    slots = max(n, 1) if slots is None else slots
-    if n > slots:
-        raise ValueError(f"the model takes at most {slots} humans, got {n}")
-    padded = np.zeros((slots, 5))
-    padded[:n] = humans
-    return {"robot": robot[None].astype(np.float32), "humans": padded[None].astype(np.float32),
-            "humans_mask": (np.arange(slots) < n)[None]}
+    robot, humans = _checked(robot, humans)
+    padded, mask = _padded(humans, slots)
+    return {"robot": robot[None].astype(np.float32), "humans": padded, "humans_mask": mask}
 
 
 FORMAT_VERSION = 2  # the newest crowdrl.format_version this example reads (none: 1, a greedy Q model)
