@@ -12,7 +12,6 @@ how many outcomes differ. Exit status 1 if an outcome rate moved by more than ``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import subprocess
@@ -22,6 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from benchkit import Column, add_json_argument, emit, log
+
+from crowdrl.evaluation.report import read_eval_record, read_eval_records
 
 os.environ.setdefault("WANDB_MODE", "offline")
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,8 +50,7 @@ def check(agent: Path, record: dict, scratch: Path) -> dict:
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
-    got = json.loads((out / "eval.json").read_text())
-    got = got[0] if isinstance(got, list) else got
+    got = read_eval_record(out / "eval.json")
     log(f"  {agent.name} on {record['scenario']}: success {got['success_rate']:.3f}")
     return {"agent": agent.name, "scenario": record["scenario"], "episodes": record["episodes"], **compare(record, got)}
 
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--tolerance: a change of an outcome rate in [0, 1), got {args.tolerance}")
     if args.jobs < 1:
         p.error(f"--jobs: must be >= 1, got {args.jobs}")
-    todo = [(PRETRAINED / n, r) for n in names for r in json.loads((PRETRAINED / n / "eval.json").read_text())]
+    todo = [(PRETRAINED / n, r) for n in names for r in read_eval_records(PRETRAINED / n / "eval.json")]
     log(f"{len(todo)} evaluations of {len(names)} agent(s), {args.jobs} at a time")
     with tempfile.TemporaryDirectory(prefix="crowdrl-check-pretrained-") as scratch, \
             ThreadPoolExecutor(max_workers=args.jobs) as pool:  # threads that wait on one subprocess each

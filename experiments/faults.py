@@ -27,6 +27,8 @@ from typing import Callable
 
 from benchkit import Column, add_json_argument, emit, log
 
+from crowdrl.evaluation.report import eval_file, read_eval_record
+
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
 SMOKE = ["preset=smoke", "logger=csv", "logger.render=false"]
@@ -174,8 +176,8 @@ def issue_52_defects(scratch: Path, record: Callable[[str, str, str, bool], None
     edited = out / "runs" / "egreedy-s0" / "eval-circle" / "eval.json"
     if first.returncode == 0 and edited.exists():
         table = (out / "table.md").read_bytes()
-        rec = json.loads(edited.read_text())
-        edited.write_text(json.dumps({**rec, "success_rate": 0.99 if rec["success_rate"] != 0.99 else 0.5}))
+        rec = read_eval_record(edited)
+        edited.write_text(json.dumps(eval_file([{**rec, "success_rate": 0.99 if rec["success_rate"] != 0.99 else 0.5}])))
         proc = cli("reproduce", *args)
         ok = one_line_exit_2(proc, str(edited), "success_rate", "summary.json") and (out / "table.md").read_bytes() == table
         observed = f"exit {proc.returncode}: {last_line(proc.stderr)[:90]}"
@@ -264,7 +266,7 @@ def same_result(a: Path, b: Path) -> tuple[bool, bool]:
 
     wa, wb = (load_checkpoint(f / "checkpoints" / "last.pt")["loss"] for f in (a, b))
     weights = wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-    ma, mb = (json.loads((f / "eval.json").read_text())["metrics"] for f in (a, b))
+    ma, mb = (read_eval_record(f / "eval.json") for f in (a, b))
     return weights, ma == mb
 
 

@@ -10,7 +10,6 @@ seed 0, evaluated from the copied file exactly as ``evaluate.py`` does), then re
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -43,6 +42,7 @@ def publish(run_dir: Path, name: str, episodes: int = 1000) -> list[dict]:
 
 
 def write_index() -> None:
+    from crowdrl.evaluation.report import read_eval_records
     from crowdrl.files import atomic_write_bytes
     from crowdrl.tables import markdown_table
 
@@ -61,7 +61,7 @@ def write_index() -> None:
              "Written by `experiments/make_pretrained.py <run folder> <name>` (2-core CPU).", ""]
     rows = []
     for folder in sorted(p.parent for p in PRETRAINED.glob("*/eval.json")):
-        recs = {r["scenario"]: r for r in json.loads((folder / "eval.json").read_text())}
+        recs = {r["scenario"]: r for r in read_eval_records(folder / "eval.json")}
         c, s = recs["circle"], recs["square"]
         rows.append([f"`{folder.name}`", f"`{c['trained_in']}`", c["checkpoint_frames"], f"{c['success_rate']:.3f}",
                      f"{s['success_rate']:.3f}", f"{c['collision_rate']:.3f}", f"{s['collision_rate']:.3f}"])

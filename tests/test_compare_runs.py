@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from crowdrl.evaluation.report import read_eval_record
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -73,7 +75,7 @@ def test_run_folders_of_a_sweep_commas_and_all_compare_on_train_pys_own_test(tmp
                        + [(["exploration.beta=0.01", "exploration=re3", f"seed={s}"], {"success": 0.8}) for s in range(2)])
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     assert all("," in j.name for j in jobs)
-    other = {**json.loads((jobs[2] / "eval.json").read_text())["metrics"], "episodes": 100, "success_rate": 0.1,
+    other = {**read_eval_record(jobs[2] / "eval.json"), "episodes": 100, "success_rate": 0.1,
              "collision_rate": 0.1, "timeout_rate": 0.8, "scenario": "circle", "seed": 0,
              "min_separation": 0.07}
     (jobs[2] / "eval-circle").mkdir()

@@ -10,6 +10,7 @@ import pytest
 import torch
 from torchrl.envs.utils import step_mdp
 
+from crowdrl.evaluation.report import read_eval_record
 from crowdrl.training import ConfigError, Trainer, validate
 from crowdrl.training.checkpoint import config_fingerprint
 from crowdrl.training.config import to_dict
@@ -176,7 +177,7 @@ def test_a_killed_run_with_demonstrations_resumed_with_its_buffer_is_bit_identic
         last = load_checkpoint(folder / "checkpoints" / "last.pt")
         rows = [{k: v for k, v in json.loads(line).items() if not k.startswith("time/")}
                 for line in (folder / "scalars.jsonl").read_text().splitlines()]
-        return last, json.loads((folder / "eval.json").read_text())["metrics"], rows
+        return last, read_eval_record(folder / "eval.json"), rows
 
     (ref, ref_metrics, ref_rows), (got, metrics, rows) = final(tmp_path / "ref"), final(tmp_path / "run")
     assert ref["counters"]["demo_transitions"] == got["counters"]["demo_transitions"] > 0

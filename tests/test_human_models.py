@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from crowdrl.evaluation.report import read_eval_record
 from crowdrl.sim import crowd
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.humans import human_velocities
@@ -198,12 +199,12 @@ def test_evaluate_py_takes_the_humans_model_in_one_override_and_refuses_a_bad_on
     proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
                 "eval.human_model=social_force", "eval.robot_visible=true", f"hydra.run.dir={tmp_path / 'ok'}")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    record = json.loads((tmp_path / "ok" / "eval.json").read_text())
+    record = read_eval_record(tmp_path / "ok" / "eval.json")
     assert (record["human_model"], record["robot_visible"]) == ("social_force", True)
     proc = _cli("evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null", "eval.human_model=mixed",
                 "eval.social_force_share=0.5", "eval.linear_share=0.25", f"hydra.run.dir={tmp_path / 'mixed'}")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    record = json.loads((tmp_path / "mixed" / "eval.json").read_text())
+    record = read_eval_record(tmp_path / "mixed" / "eval.json")
     assert (record["human_model"], record["social_force_share"], record["linear_share"]) == ("mixed", 0.5, 0.25)
     for args, named in ((["env=room", "eval.human_model=social_force"], "eval.human_model"),
                         (["eval.robot_visible=maybe"], "eval.robot_visible"),

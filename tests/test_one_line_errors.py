@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from crowdrl.evaluation.report import read_eval_record
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -304,7 +306,6 @@ def test_a_refused_sweep_leaves_no_sweep_folder(monkeypatch, capsys, scratch, sw
 def test_evaluate_refuses_a_folder_that_holds_records_and_writes_into_a_new_or_empty_one(monkeypatch, capsys, scratch):
     """D5: `evaluate.py checkpoint=R hydra.run.dir=R` (R a finished training run) would have replaced the run's
     own test eval.json: refused naming the folder, R as it was; an empty folder is written into."""
-    import json
 
     from crowdrl.cli.evaluate import main
 
@@ -324,4 +325,4 @@ def test_evaluate_refuses_a_folder_that_holds_records_and_writes_into_a_new_or_e
     monkeypatch.setattr(sys, "argv", ["evaluate.py", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
                                       f"hydra.run.dir={empty}"])
     main()
-    assert json.loads((empty / "eval.json").read_text())["episodes"] == 2
+    assert read_eval_record(empty / "eval.json")["episodes"] == 2

@@ -10,6 +10,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
+from crowdrl.evaluation.report import read_eval_record
 from crowdrl.envs import CrowdNavEnv, robot_centric
 from crowdrl.models import SGD3QNEncoder, make_q_actor, make_q_network
 from crowdrl.models.predictor import ConstantVelocityPredictor, CrowdStatePredictor, predictor_loss
@@ -315,8 +316,8 @@ def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_plann
              for line in (tmp_path / d / "scalars.jsonl").read_text().splitlines()] for d in ("ref", "run")]
     assert rows[0] == rows[1]
     assert any("train/predictor_loss" in r for r in rows[0])
-    eval_ref = json.loads((tmp_path / "ref" / "eval.json").read_text())["metrics"]
-    assert eval_ref == json.loads((tmp_path / "run" / "eval.json").read_text())["metrics"]
+    eval_ref = read_eval_record(tmp_path / "ref" / "eval.json")
+    assert eval_ref == read_eval_record(tmp_path / "run" / "eval.json")
 
     best = load_checkpoint(tmp_path / "ref" / "checkpoints" / "best.pt")
     assert "predictor" in best

@@ -3,7 +3,6 @@ checkpoints, and ``evaluate.py`` on one of them reproduces its ``eval.json``."""
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -11,6 +10,8 @@ from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
+
+from crowdrl.evaluation.report import read_eval_record, read_eval_records
 
 ROOT = Path(__file__).resolve().parents[1]
 AGENTS = sorted(p.parent for p in (ROOT / "pretrained").glob("*/best.pt"))
@@ -34,7 +35,7 @@ def test_each_agent_loads_with_weights_only_and_matches_its_config_and_record(ag
     run, net, data = load_trained_network(agent)  # weights_only=True, fingerprint, finite weights
     # its config.yaml, keys it predates at the values it ran with (not today's defaults: issue 50's learner)
     assert to_dict(run) == to_dict(validate(stored_config(OmegaConf.load(agent / "config.yaml")), resources=False))
-    records = {r["scenario"]: r for r in json.loads((agent / "eval.json").read_text())}
+    records = {r["scenario"]: r for r in read_eval_records(agent / "eval.json")}
     assert set(records) == {"circle", "square"}
     for scenario, rec in records.items():
         assert rec["episodes"] == 1000 and rec["seed"] == 0, scenario
@@ -59,8 +60,8 @@ def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
                            f"hydra.run.dir={tmp_path / 'eval'}"], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "WANDB_MODE": "offline"}, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    got = json.loads((tmp_path / "eval" / "eval.json").read_text())
-    want = {r["scenario"]: r for r in json.loads((agent / "eval.json").read_text())}["square"]
+    got = read_eval_record(tmp_path / "eval" / "eval.json")
+    want = {r["scenario"]: r for r in read_eval_records(agent / "eval.json")}["square"]
     # The same cases through the same code. On the machine that wrote eval.json every digit is equal;
     # on another CPU the compiled kernels round differently, so a robot's path can drift by a step in
     # a few of the 1000 episodes (measured: the same outcomes, navigation time 11.8817 vs 11.8825 s).
@@ -72,7 +73,7 @@ def test_evaluate_py_on_a_pretrained_agent_reproduces_its_eval_json(tmp_path):
 
 def test_check_pretrained_tells_an_identical_record_from_a_moved_one():
     from check_pretrained import compare
-    want = json.loads((AGENTS[0] / "eval.json").read_text())[0]
+    want = read_eval_records(AGENTS[0] / "eval.json")[0]
     same = compare(want, dict(want))
     assert same["identical"] and same["max_rel_diff"] == 0 and same["outcomes_moved"] == 0
     drift = compare(want, {**want, "navigation_time": want["navigation_time"] * (1 + 1e-4)})

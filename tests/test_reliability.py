@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from crowdrl.evaluation.report import read_eval_record
 from crowdrl.training.config import ConfigError, RunConfig, check_device, validate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,7 +164,7 @@ def test_a_folder_that_predates_the_recommended_learner_resumes_as_it_ran_and_te
     proc = subprocess.run([*TRAIN, "preset=smoke", "logger=csv", "logger.render=false", "learner=plain",
                            f"hydra.run.dir={run}"], env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    first = json.loads((run / "eval.json").read_text())["metrics"]
+    first = read_eval_record(run / "eval.json")
     config = OmegaConf.load(run / "config.yaml")
     del config.train["counterfactual"], config.train["target_tau"]  # written before the keys
     (run / "config.yaml").write_text(OmegaConf.to_yaml(config))
@@ -171,7 +172,7 @@ def test_a_folder_that_predates_the_recommended_learner_resumes_as_it_ran_and_te
         (run / name).unlink()
     proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert json.loads((run / "eval.json").read_text())["metrics"] == first
+    assert read_eval_record(run / "eval.json") == first
     stored = load_checkpoint(run / "checkpoints" / "last.pt")["config"]["train"]
     assert stored["counterfactual"]["mode"] == "off" and stored["target_tau"] == 1.0
     shutil.rmtree(run)
@@ -299,7 +300,7 @@ def _final(run_dir: Path) -> tuple[dict, dict, list]:
     last = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     rows = [{k: v for k, v in json.loads(line).items() if not k.startswith("time/")}
             for line in (run_dir / "scalars.jsonl").read_text().splitlines()]
-    return last["loss"], json.loads((run_dir / "eval.json").read_text())["metrics"], rows
+    return last["loss"], read_eval_record(run_dir / "eval.json"), rows
 
 
 # ICM with the bonus options carries the most state (its networks, its optimizer, the one-step

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crowdrl.evaluation.report import eval_file, read_eval_record
+
 ROOT = Path(__file__).resolve().parents[1]
 EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
 REPRODUCE = [sys.executable, str(ROOT / "experiments" / "reproduce.py")]
@@ -71,7 +73,7 @@ def test_reproduce_writes_the_table_with_intervals_and_the_figures(reproduced):
     for variant in ("egreedy", "re3"):
         for seed in (0, 1):
             for scenario in ("circle", "square"):
-                rec = json.loads((reproduced / "runs" / f"{variant}-s{seed}" / f"eval-{scenario}" / "eval.json").read_text())
+                rec = read_eval_record(reproduced / "runs" / f"{variant}-s{seed}" / f"eval-{scenario}" / "eval.json")
                 assert EVAL_KEYS <= set(rec) and rec["episodes"] == 6 and rec["scenario"] == scenario
     md = (reproduced / "table.md").read_text()
     assert "## circle" in md and "## square" in md and "(0.940)" in md
@@ -159,7 +161,7 @@ def test_reproduce_refuses_a_record_out_of_range_in_one_line(reproduced, tmp_pat
     clone = tmp_path / "results"
     shutil.copytree(reproduced, clone, ignore=shutil.ignore_patterns("checkpoints"))
     bad = sorted(clone.glob("runs/*/eval-*/eval.json"))[0]
-    bad.write_text(json.dumps({**json.loads(bad.read_text()), "success_rate": 7.5}))
+    bad.write_text(json.dumps(eval_file([{**read_eval_record(bad), "success_rate": 7.5}])))
     table = (clone / "table.md").read_bytes()
     proc = run([*REPRODUCE, *TINY, f"out={clone}"])
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
@@ -187,7 +189,7 @@ def test_evaluate_cli_orca(tmp_path):
         proc = run([*EVALUATE, "policy=orca", f"env={scenario}", "eval.episodes=8", "eval.batch=5",
                     f"hydra.run.dir={folder}"])
         assert proc.returncode == 0, proc.stderr[-2000:]
-        rec = json.loads((folder / "eval.json").read_text())
+        rec = read_eval_record(folder / "eval.json")
         assert EVAL_KEYS <= set(rec) and rec["scenario"] == scenario and rec["episodes"] == 8
         assert (folder / "eval.csv").exists() and (folder / f"{scenario}_case0.png").exists()
         assert f"| orca | {scenario} |" in proc.stdout and str(folder) in proc.stdout
@@ -198,16 +200,16 @@ def test_evaluate_cli_on_a_checkpoint_equals_its_training_test(reproduced, tmp_p
     proc = run([*EVALUATE, f"checkpoint={run_dir}", "eval.episodes=6", "eval.batch=4", "eval.record_episode=null",
                 f"hydra.run.dir={tmp_path / 'e'}"])
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rec = json.loads((tmp_path / "e" / "eval.json").read_text())
-    trained = json.loads((run_dir / "eval-circle" / "eval.json").read_text())
+    rec = read_eval_record(tmp_path / "e" / "eval.json")
+    trained = read_eval_record(run_dir / "eval-circle" / "eval.json")
     for key in ("success_rate", "collision_rate", "timeout_rate", "average_return", "discomfort_frequency"):
         assert rec[key] == trained[key], key
     assert rec["policy"] == "sgd3qn+re3+planning" and rec["train_seed"] == 1  # reproduce.py plans by default
     proc = run([*EVALUATE, f"checkpoint={run_dir / 'checkpoints' / 'best.pt'}", "env=square", "eval.episodes=6",
                 "eval.record_episode=2", f"hydra.run.dir={tmp_path / 'sq'}"])  # zero-shot on square, from the .pt
     assert proc.returncode == 0, proc.stderr[-2000:]
-    square = json.loads((tmp_path / "sq" / "eval.json").read_text())
-    in_reproduce = json.loads((run_dir / "eval-square" / "eval.json").read_text())
+    square = read_eval_record(tmp_path / "sq" / "eval.json")
+    in_reproduce = read_eval_record(run_dir / "eval-square" / "eval.json")
     assert square["scenario"] == "square" and square["train_scenario"] == "circle"
     assert square["success_rate"] == in_reproduce["success_rate"] and square["average_return"] == in_reproduce["average_return"]
     assert (tmp_path / "sq" / "square_case2.gif").exists()
@@ -359,7 +361,7 @@ def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp
     assert proc.returncode == 0, proc.stderr[-2000:]
     for run_dir in [*(out / "runs").glob("*-s*"), out / "orca"]:
         if run_dir.is_dir():
-            gap = json.loads((run_dir / "eval-circle" / "gap.json").read_text())
+            gap = read_eval_record(run_dir / "eval-circle" / "gap.json")
             fails = round((1 - gap["success_rate"]) * 6)
             assert gap["avoidable_failures"] + gap["unavoidable_failures"] + gap["unknown_failures"] == fails
             assert not (run_dir / "eval-square" / "gap.json").exists()
@@ -416,3 +418,41 @@ def test_a_runs_record_is_cross_checked_against_its_own_summary(tmp_path):
     (run_dir / "summary.json").unlink()  # nothing to compare with
     edited.write_text(json.dumps({**record, "scenario": "circle", "success_rate": 0.99}))
     assert read_run_eval_record(edited, run_dir)["success_rate"] == 0.99
+
+
+def test_one_reader_for_every_eval_json_layout(tmp_path):
+    """Issue 53 item 4: version 2 round-trips; the layouts before it (a flat record, a list, a training run's
+    nested test) read as the same records; a newer version and another format are refused naming the file."""
+    from crowdrl.evaluation.report import EVAL_VERSION, RecordError, read_eval_records, write_records
+
+    record = {"success_rate": 0.9, "collision_rate": 0.1, "timeout_rate": 0.0, "navigation_time": 11.0,
+              "average_return": 0.6, "discomfort_frequency": 0.05, "min_separation": 0.15, "episodes": 10,
+              "seed": 0, "scenario": "circle", "policy": "x"}
+    path, _ = write_records(tmp_path, [record, {**record, "scenario": "square"}])
+    data = json.loads(path.read_text())
+    assert (data["format"], data["version"]) == ("crowdrl.eval", EVAL_VERSION)
+    assert read_eval_records(path) == [record, {**record, "scenario": "square"}]
+    with pytest.raises(RecordError, match="holds 2 records"):
+        read_eval_record(path)
+    for legacy in (record, [record]):
+        path.write_text(json.dumps(legacy))
+        assert read_eval_records(path) == [record]
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("env:\n  scenario: circle\n")
+    metrics = {**{k: v for k, v in record.items() if k not in ("min_separation", "seed", "scenario", "policy")},
+               "discomfort_min_separation": 0.15}
+    (run / "eval.json").write_text(json.dumps({"checkpoint_frames": 64, "test_seed": 0, "metrics": metrics}))
+    old = read_eval_record(run / "eval.json")
+    assert {k: old[k] for k in ("success_rate", "min_separation", "seed", "scenario", "checkpoint_frames")} == \
+        {"success_rate": 0.9, "min_separation": 0.15, "seed": 0, "scenario": "circle", "checkpoint_frames": 64}
+    for payload, words in (({"format": "crowdrl.eval", "version": EVAL_VERSION + 1, "records": [record]},
+                            f"version {EVAL_VERSION + 1} was written by a newer crowdrl"),
+                           ({"format": "other", "version": 2, "records": [record]}, "format: expected 'crowdrl.eval'"),
+                           ({"format": "crowdrl.eval", "version": 2, "records": []}, "records: expected a non-empty"),
+                           ({"format": "crowdrl.eval", "version": 2, "records": [{**record, "success_rate": 2}]},
+                            "success_rate: must be a number in [0, 1]")):
+        path.write_text(json.dumps(payload))
+        with pytest.raises(RecordError, match=re.escape(f"{path}")) as err:
+            read_eval_records(path)
+        assert words in str(err.value)

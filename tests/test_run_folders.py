@@ -308,7 +308,7 @@ def test_json_records_are_strict_with_null_for_undefined_metrics(tmp_path):
               "average_return": -0.25, "discomfort_frequency": 0.0, "min_separation": float("inf"),
               "episodes": 2, "seed": 0, "scenario": "circle", "policy": "x"}
     json_path, _ = write_records(tmp_path, [record])
-    back = _strict(json_path.read_text())
+    back = _strict(json_path.read_text())["records"][0]
     assert back["navigation_time"] is None and back["min_separation"] is None
     assert "| – |" in markdown_table([back])  # the readers take null as undefined
 

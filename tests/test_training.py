@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import DQNLoss
 
+from crowdrl.evaluation.report import read_eval_record
 from crowdrl.models import make_q_actor
 from crowdrl.training import CheckpointError, ConfigError, NStepReturn, load_checkpoint, nstep_transitions, validate
 from crowdrl.training.checkpoint import save_checkpoint
@@ -299,7 +300,7 @@ def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
     assert (status["frames"], status["updates"]) == (ref["frames"], ref["updates"]) == (512, status["updates"])
     weights, ref_weights = (load_checkpoint(d / "checkpoints" / "last.pt")["loss"] for d in (run_dir, ref_dir))
     assert all(torch.equal(weights[k], ref_weights[k]) for k in ref_weights), "with its buffer, resume is exact"
-    metrics = [json.loads((d / "eval.json").read_text())["metrics"] for d in (run_dir, ref_dir)]
+    metrics = [read_eval_record(d / "eval.json") for d in (run_dir, ref_dir)]
     assert metrics[0] == metrics[1]
     after = _rows(run_dir)
     assert after[: len(before)] == before, "rows written before the kill must survive unchanged"

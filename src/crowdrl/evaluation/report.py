@@ -1,4 +1,22 @@
-"""What an evaluation reports: the ``eval.json`` record, its CSV row and a Markdown table."""
+"""What an evaluation reports: the ``eval.json`` record, its CSV row and a Markdown table.
+
+Every ``eval.json`` crowdrl writes (``evaluate.py``, ``train.py``'s test of its best checkpoint, ``reproduce.py``,
+``pretrained/``) has one layout, version :data:`EVAL_VERSION`::
+
+    {"format": "crowdrl.eval", "version": 2, "records": [
+        {"success_rate": 0.974, "collision_rate": 0.026, ..., "episodes": 1000, "seed": 0, "scenario": "circle",
+         "policy": "sgd3qn+egreedy+planning", "checkpoint": "...", "checkpoint_frames": 200704, ...}]}
+
+One record per scenario tested. :func:`read_eval_records` is the one reader: it also reads the layouts written
+before version 2 (a flat record, a list of records, a training run's ``{"test_seed", "metrics"}``), and refuses
+a newer version or another format, naming the file.
+
+Example::
+
+    from crowdrl.evaluation.report import read_eval_records
+    for r in read_eval_records("pretrained/sgd3qn-planning-egreedy-episodes-s0/eval.json"):
+        print(r["scenario"], r["success_rate"])
+"""
 
 from __future__ import annotations
 
@@ -12,6 +30,9 @@ from typing import Any, Iterable
 from crowdrl import tables
 from crowdrl.evaluation.metrics import EpisodeMetrics
 from crowdrl.files import atomic_write_bytes, atomic_write_json
+
+EVAL_FORMAT = "crowdrl.eval"
+EVAL_VERSION = 2  # 1: the layouts before it (no "format"/"version" keys), read by read_eval_records
 
 # eval.json keys, in table order, and the EpisodeMetrics field each comes from
 REPORT_FIELDS = {
@@ -107,12 +128,18 @@ def markdown_table(records: Iterable[dict[str, Any]], label_keys: tuple[str, ...
                                         for r in records))
 
 
+def eval_file(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The ``eval.json`` payload (version :data:`EVAL_VERSION`) holding ``records``."""
+    return {"format": EVAL_FORMAT, "version": EVAL_VERSION, "records": list(records)}
+
+
 def write_records(folder: Path | str, records: list[dict[str, Any]], stem: str = "eval") -> tuple[Path, Path]:
-    """``<stem>.json`` (one record, or a list) and ``<stem>.csv`` in ``folder``, written atomically."""
+    """``<stem>.json`` (:func:`eval_file`) and ``<stem>.csv`` (one row per record) in ``folder``, written atomically."""
     folder = Path(folder)
-    payload = records[0] if len(records) == 1 else records
+    if not records:
+        raise ValueError(f"{folder / stem}.json: no records to write")
     json_path, csv_path = folder / f"{stem}.json", folder / f"{stem}.csv"
-    atomic_write_json(json_path, payload)
+    atomic_write_json(json_path, eval_file(records))
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(records[0]))
     writer.writeheader()
@@ -175,9 +202,70 @@ def read_json_record(path: Path | str) -> dict[str, Any]:
     return data
 
 
+def _legacy_run_test(data: dict[str, Any], path: Path) -> dict[str, Any]:
+    """A training run's ``eval.json`` before version 2 (``{"checkpoint_frames", "test_seed", "metrics"}``, the
+    metrics named as in ``summary.json``) as a record; the scenario from the run's ``config.yaml``."""
+    metrics = check_metrics(data.get("metrics"), f"{path}: metrics", separation_key="discomfort_min_separation")
+    record: dict[str, Any] = {key: metrics.get(field) for key, field in REPORT_FIELDS.items()}
+    record.update(episodes=metrics["episodes"], seed=data.get("test_seed"), scenario=_run_scenario(path.parent, {}),
+                  checkpoint_frames=data.get("checkpoint_frames"))
+    return record
+
+
+def read_eval_records(path: Path | str) -> list[dict[str, Any]]:
+    """Every record of an ``eval.json`` (any version up to :data:`EVAL_VERSION`), each checked
+    (:func:`check_metrics`); :class:`RecordError` naming the file and what differs otherwise (another format,
+    a newer version, a bad field)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecordError(f"{path}: missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RecordError(f"{path}: not valid JSON ({exc})") from None
+    if isinstance(data, list):  # version 1: several scenarios (pretrained/)
+        records = data
+    elif isinstance(data, dict) and ("format" in data or "version" in data):
+        if data.get("format") != EVAL_FORMAT:
+            raise RecordError(f"{path}: format: expected {EVAL_FORMAT!r}, got {data.get('format')!r}")
+        version = data.get("version")
+        if not (isinstance(version, int) and not isinstance(version, bool) and 2 <= version):
+            raise RecordError(f"{path}: version: expected an integer >= 2, got {version!r}")
+        if version > EVAL_VERSION:
+            raise RecordError(f"{path}: version {version} was written by a newer crowdrl; this one reads versions up "
+                              f"to {EVAL_VERSION} (upgrade crowdrl to read it)")
+        records = data.get("records")
+        if not isinstance(records, list) or not records:
+            raise RecordError(f"{path}: records: expected a non-empty list, got {records!r}")
+    elif isinstance(data, dict) and "metrics" in data:  # version 1: a training run's own test
+        return [_legacy_run_test(data, path)]
+    elif isinstance(data, dict):  # version 1: one flat record (evaluate.py, reproduce.py)
+        records = [data]
+    else:
+        raise RecordError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    for i, record in enumerate(records):
+        check_metrics(record, f"{path}: records[{i}]" if len(records) > 1 else str(path))
+    return records
+
+
 def read_eval_record(path: Path | str) -> dict[str, Any]:
-    """An ``eval.json`` record (:func:`eval_record`) read back and checked (:func:`check_metrics`)."""
-    return check_metrics(read_json_record(path), str(path))
+    """The one record of an ``eval.json`` (:func:`read_eval_records`); :class:`RecordError` when it holds several."""
+    records = read_eval_records(path)
+    if len(records) != 1:
+        scenarios = ", ".join(str(r.get("scenario")) for r in records)
+        raise RecordError(f"{path}: holds {len(records)} records ({scenarios}); expected one")
+    return records[0]
+
+
+def read_scenario_record(path: Path | str, scenario: str) -> dict[str, Any]:
+    """The record of ``scenario`` in an ``eval.json`` (:func:`read_eval_records`); :class:`RecordError` naming the
+    scenarios it holds otherwise."""
+    records = read_eval_records(path)
+    found = [r for r in records if r.get("scenario") == scenario]
+    if len(found) != 1:
+        held = ", ".join(str(r.get("scenario")) for r in records)
+        raise RecordError(f"{path}: {len(found)} records on {scenario} (it holds: {held}); expected one")
+    return found[0]
 
 
 def read_summary(path: Path | str) -> dict[str, Any]:
@@ -248,23 +336,21 @@ def read_run_eval_record(path: Path | str, run_dir: Path | str) -> dict[str, Any
 
 def read_own_test_record(run_dir: Path | str) -> dict[str, Any]:
     """The test a training run made of itself (``train.py``'s top-level ``eval.json``: its best
-    checkpoint on its training scenario; ``summary.json``'s ``test`` when ``eval.json`` is missing), as a flat
-    ``eval.json``-style record (:data:`REPORT_FIELDS`, ``episodes``, ``seed``, ``scenario`` from its
-    ``config.yaml``, ``checkpoint_frames``); :class:`RecordError` naming the file and field otherwise."""
+    checkpoint on its training scenario; ``summary.json``'s ``test`` when ``eval.json`` is missing), as an
+    ``eval.json`` record (:data:`REPORT_FIELDS`, ``episodes``, ``seed``, ``scenario`` from its ``config.yaml``,
+    ``checkpoint_frames``, ``source``); :class:`RecordError` naming the file and field otherwise."""
     run_dir = Path(run_dir)
     path = run_dir / "eval.json"
     if path.is_file():
-        test = read_json_record(path)
-        metrics = check_metrics(test.get("metrics"), f"{path}: metrics", separation_key="discomfort_min_separation")
+        record = dict(read_eval_record(path))
+        if record.get("scenario") is None:
+            record["scenario"] = _run_scenario(run_dir, {})
     elif (run_dir / "summary.json").is_file():
         path = run_dir / "summary.json"
-        test = read_summary(path)["test"]
-        metrics = test["metrics"]
+        record = _legacy_run_test(read_summary(path)["test"], path)
     else:
         raise RecordError(f"{run_dir}: no eval.json or summary.json (not a finished training run)")
-    record: dict[str, Any] = {key: metrics.get(field) for key, field in REPORT_FIELDS.items()}
-    record.update(episodes=metrics["episodes"], seed=test.get("test_seed"), scenario=_run_scenario(run_dir, {}),
-                  checkpoint_frames=test.get("checkpoint_frames"), source=str(path))
+    record["source"] = str(path)
     return record
 
 

@@ -12,6 +12,7 @@ import torch
 from filelock import FileLock, Timeout
 
 from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
+from crowdrl.evaluation.report import eval_record, write_records
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
@@ -158,8 +159,16 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_
 
         plot_trajectory(traj, run_dir / f"test_case{record_episode}.png", title=f"test case {record_episode}")
         animate_trajectory(traj, run_dir / f"test_case{record_episode}.gif")
-    atomic_write_json(run_dir / "eval.json", out)
+    write_records(run_dir, [eval_record(metrics, scenario=run.env.scenario, seed=TEST_SEED, policy=policy_name(run),
+                                        checkpoint=str(Path("checkpoints") / "best.pt"), checkpoint_frames=best["frames"],
+                                        train_scenario=run.env.scenario, train_seed=run.seed)])
     return out
+
+
+def policy_name(run: RunConfig, *, onnx: bool = False) -> str:
+    """The ``policy`` an ``eval.json`` record names: ``<encoder>+<exploration>[+planning][+onnx]``."""
+    return (f"{run.encoder.name}+{run.exploration.name}" + ("+planning" if run.planning.enabled else "")
+            + ("+onnx" if onnx else ""))
 
 
 BASELINES = ("orca",)
@@ -345,10 +354,10 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     if humans or scenario is not None:  # the checkpoint's humans, with those given, in the scenario asked for
         trained = {k: getattr(run.env, k) for k in ("human_model", *SHARE_KEYS)}
         _eval_crowd(scenario or run.env.scenario, trained | humans, given=bool(humans))
+    if acting:  # checked against the run as it trained: the humans' change below is the test's, not training's
+        run = act_with(run, acting)
     if humans:
         run = replace(run, env=replace(run.env, **humans))
-    if acting:
-        run = act_with(run, acting)
     planner, free = planner_bytes(run, min(episodes, batch)), available_memory(device)
     if free is not None and planner > free:
         raise ValueError(f"eval.batch: the planner of {checkpoint} expands {planned_states(run, min(episodes, batch))} "
@@ -374,8 +383,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                                          num_humans=num_humans, record_episode=record_episode, batch=batch,
                                          predictor=predictor)
         path = checkpoint_path(checkpoint)
-    record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}"
-                         + ("+planning" if run.planning.enabled else "") + ("+onnx" if exported is not None else ""),
+    record = eval_record(metrics, scenario=scenario, seed=seed, policy=policy_name(run, onnx=exported is not None),
                          checkpoint=str(path), checkpoint_frames=data.get("frames"),
                          train_scenario=run.env.scenario, train_seed=run.seed,
                          **({f"planning_{k}": acted(run, k) for k in acting}),
