@@ -8,6 +8,8 @@ changes nothing, so it has one cell), ``mixed`` (a mixed crowd, blind: ``social_
 
 * ``pretrained-polyak``: ``pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{0,1,2}`` (the
   full learner, counterfactual experience with Polyak targets, the best agents crowdrl ships), zero-shot likewise;
+* ``pretrained-polyak-depth2``: the same agents acting with the depth-2 look-ahead (``eval.planning_depth=2``, the
+  best act-time setting of ``docs/ceiling.md``), zero-shot likewise;
 * ``pretrained``: ``pretrained/sgd3qn-planning-egreedy-episodes-s{0,1,2}`` (trained on blind ORCA at the
   episodes budget), zero-shot on every other cell;
 * ``orca-robot``: the ORCA robot (deterministic: one evaluation per cell);
@@ -61,7 +63,9 @@ TRAINED = {  # group -> the training cell
 PRETRAINED = {  # group -> the agents' folders
     "pretrained": "pretrained/sgd3qn-planning-egreedy-episodes-s{seed}",
     "pretrained-polyak": "pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{seed}",
+    "pretrained-polyak-depth2": "pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{seed}",
 }
+ACTING = {"pretrained-polyak-depth2": ["eval.planning_depth=2"]}  # group -> evaluate.py's act-time overrides
 # learner=plain (no counterfactual experience, hard target copies): the learner results/human-models' runs trained with
 TRAIN_BASE = ["learner=plain", "logger=csv", "logger.progress_bar=false", "logger.render=false", "train.compile_acting=true",
               "train.test_episodes=100"]  # the test here is evaluate.py's on every cell
@@ -93,13 +97,15 @@ def train_one(folder: Path, cell: str, seed: int, preset: str) -> int:
         return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
 
 
-def test_one(agent: str | None, out: Path, cell: str, scenario: str, episodes: int) -> int:
-    """``evaluate.py`` of a checkpoint (``agent``; ``None``: the ORCA robot) on ``cell`` (skipped when done)."""
+def test_one(agent: str | None, out: Path, cell: str, scenario: str, episodes: int, acting: list[str] = ()) -> int:
+    """``evaluate.py`` of a checkpoint (``agent``; ``None``: the ORCA robot) on ``cell`` (skipped when done), acting
+    with the act-time overrides ``acting``."""
     if (out / "eval.json").exists():
         return 0
     who = [f"checkpoint={agent}"] if agent is not None else ["policy=orca"]
     cmd = [sys.executable, str(ROOT / "experiments" / "evaluate.py"), *who, f"env={scenario}",
-           f"eval.episodes={episodes}", "eval.record_episode=null", *cell_overrides(cell, "eval"), f"hydra.run.dir={out}"]
+           f"eval.episodes={episodes}", "eval.record_episode=null", *cell_overrides(cell, "eval"), *acting,
+           f"hydra.run.dir={out}"]
     with log_to(out.parent / f"{out.name}.log") as log:
         return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
 
@@ -189,16 +195,16 @@ def main(argv: list[str] | None = None) -> int:
                 codes = list(pool.map(lambda gs: train_one(args.out / "runs" / f"{gs[0]}-s{gs[1]}", TRAINED[gs[0]],
                                                            gs[1], args.preset), order))
                 failed += [f"train {g}-s{s}" for (g, s), code in zip(order, codes) if code]
-            tests = [(label, ckpt, cell) for members in table.values() for label, ckpt in members.items()
-                     for cell in args.cells if ckpt is None or has_checkpoint(Path(ckpt))]
+            tests = [(label, ckpt, cell, ACTING.get(group, [])) for group, members in table.items()
+                     for label, ckpt in members.items() for cell in args.cells if ckpt is None or has_checkpoint(Path(ckpt))]
             codes = list(pool.map(lambda t: test_one(t[1], args.out / "evals" / t[0] / t[2], t[2], args.scenario,
-                                                     args.episodes), tests))
-            failed += [f"test {label} on {cell}" for (label, _, cell), code in zip(tests, codes) if code]
+                                                     args.episodes, t[3]), tests))
+            failed += [f"test {t[0]} on {t[2]}" for t, code in zip(tests, codes) if code]
         print(f"done in {(time.time() - start) / 60:.0f} min" + (f"; failed: {', '.join(failed)}" if failed else ""))
     meta = {"scenario": args.scenario, "episodes": args.episodes, "test_seed": 0, "seeds": args.seeds,
             "preset": args.preset, "cells": {c: list(CELLS[c]) for c in args.cells},
             "shares": {c: list(SHARES[c]) for c in args.cells if c in SHARES}, "train_base": TRAIN_BASE,
-            "pretrained": PRETRAINED}
+            "pretrained": PRETRAINED, "acting": ACTING}
     print(write_table(args.out, summarise(args.out, table, args.cells), meta))
     return 1 if failed else 0
 

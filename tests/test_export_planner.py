@@ -18,6 +18,7 @@ import torch
 onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
+from crowdrl.evaluation.report import read_eval_record  # noqa: E402
 from crowdrl.export import FORMAT_VERSION, PLANNER_INPUTS, export_onnx, read_exported  # noqa: E402
 from crowdrl.policies.onnx_policy import OnnxPolicy, compare_on_test_cases  # noqa: E402
 from crowdrl.training import CheckpointError  # noqa: E402
@@ -101,7 +102,7 @@ def test_evaluate_py_evaluates_an_onnx_file_with_the_checkpoints_record_layout(p
                            "eval.episodes=6", "eval.record_episode=null", f"hydra.run.dir={out}"], env=ENV,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    got = json.loads((out / "eval.json").read_text())
+    got = read_eval_record(out / "eval.json")
     want, _ = evaluate_spec(checkpoint=folder, episodes=6, record_episode=None)
     assert sorted(got) == sorted(want)
     assert got["policy"] == want["policy"] + "+onnx" == "sgd3qn+egreedy+planning+onnx"
@@ -237,3 +238,12 @@ def test_the_onnx_policy_refuses_another_crowd_size_for_a_fixed_n_model(tmp_path
     with pytest.raises(ValueError, match=r"eval.num_humans: .*lstm.onnx takes exactly 4 rows"):
         evaluate_spec(checkpoint=info.path, episodes=2, num_humans=6)
     assert isinstance(OnnxPolicy(info.path), OnnxPolicy)
+
+
+def test_act_time_planning_keys_combine_with_humans_that_see_the_robot():
+    """A counterfactual-trained agent at depth 2 among humans that see the robot: the planner keys are checked
+    against the run as it trained, so the test's visible humans do not trip a training-only check (they did)."""
+    agent = Path(__file__).resolve().parents[1] / "pretrained" / "sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0"
+    record, _ = evaluate_spec(checkpoint=agent, episodes=2, record_episode=None, robot_visible=True,
+                              planning={"depth": 2})
+    assert (record["planning_depth"], record["robot_visible"]) == (2, True)

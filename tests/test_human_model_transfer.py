@@ -60,3 +60,13 @@ def test_the_table_is_the_mean_over_the_seeds_recorded(transfer, tmp_path):
     assert by["pretrained", "orca"]["success_rate_per_seed"] == [0.9, 0.7]
     assert by["orca-robot", "orca"]["success_rate"] == pytest.approx(0.8)
     assert "| pretrained | orca | 2 | 0.800" in (tmp_path / "table.md").read_text()
+
+
+def test_the_depth2_group_acts_with_its_overrides(transfer, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(transfer.subprocess, "call", lambda cmd, **kw: calls.append(cmd) or 0)
+    transfer.test_one("agent", tmp_path / "a", "orca", "circle", 5, transfer.ACTING["pretrained-polyak-depth2"])
+    transfer.test_one("agent", tmp_path / "b", "orca", "circle", 5)
+    assert "eval.planning_depth=2" in calls[0]
+    assert not any("planning_depth" in arg for arg in calls[1])
+    assert set(transfer.ACTING) <= set(transfer.PRETRAINED)
