@@ -41,7 +41,19 @@ def finished_run(tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("runs") / "s0"
     proc = train("preset=smoke", "logger=csv", "logger.render=false", "seed=0", f"hydra.run.dir={run}")
     assert proc.returncode == 0, proc.stderr[-2000:]
+    (run.parent / "output.txt").write_text(proc.stdout + proc.stderr)
     return run
+
+
+def test_a_runs_console_output_names_its_folder_first_and_shows_no_nan_or_colour_codes(finished_run):
+    """Issue 53 item 6: the run folder is printed before training starts; a smoke run whose test reached no goal
+    printed "nav time nan s"; torchrl's INFO line showed raw ANSI codes in a pipe."""
+    output = (finished_run.parent / "output.txt").read_text()
+    lines = output.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("run folder: "))
+    test = next(i for i, line in enumerate(lines) if line.startswith("test ("))
+    assert first < test - 1 and str(finished_run.resolve()) in lines[first]
+    assert "\033[" not in output and "\x1b" not in output and not re.search(r"\bnan\b", output), output[-2000:]
 
 
 @pytest.mark.parametrize("kind", ["user_files", "empty"])

@@ -240,6 +240,19 @@ def check_overrides(module: str, cfg: Any) -> None:
         exit_with_error(module, str(exc))
 
 
+def plain_library_logs() -> None:
+    """torchrl's console lines without its colour codes wherever their stream is not a terminal (a log file, a pipe,
+    CI), where the codes would show as raw ``\\033[92m`` text."""
+    import logging
+
+    import torchrl  # noqa: F401  (its import installs the coloured console handler)
+
+    for handler in logging.getLogger("torchrl").handlers:
+        isatty = getattr(getattr(handler, "stream", None), "isatty", None)
+        if not (callable(isatty) and isatty()):
+            handler.setFormatter(logging.Formatter("%(asctime)s [%(name)s][%(levelname)s] %(message)s"))
+
+
 def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] | None = None) -> Callable[[F], F]:
     """``@hydra.main`` on crowdrl's configs (:func:`crowdrl.resources.config_dir`, ``config_name``) with
     :func:`one_line_errors` around both Hydra's composition and the job itself (an error escaping the
@@ -257,6 +270,7 @@ def hydra_command(module: str, config_name: str, allowed: Callable[[str], str] |
         @functools.wraps(task)
         def checked(cfg: Any, *args: Any, **kwargs: Any) -> Any:
             check_overrides(module, cfg)
+            plain_library_logs()
             return task(cfg, *args, **kwargs)
 
         command = one_line_errors(module, allowed)(hydra_main(one_line_errors(module, allowed)(checked)))

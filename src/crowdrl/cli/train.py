@@ -10,7 +10,6 @@ or ``python experiments/train.py`` in a checkout; the configs are crowdrl's own,
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -55,6 +54,7 @@ def main(cfg: DictConfig) -> float:
     from crowdrl.training import CheckpointError, ConfigError, run_training, validate
     from crowdrl.training.pipeline import completed_summary
     from crowdrl.training.run_folder import RunFolderRefused, discard_new_folders
+    from crowdrl.evaluation.metrics import seconds
     from crowdrl.training.trainer import NonFiniteError
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -70,6 +70,7 @@ def main(cfg: DictConfig) -> float:
         discard_new_folders(out_dir)
     status = run_dir / "status.json"
     complete_status = status.read_bytes() if completed_summary(run_dir) is not None else None
+    print(f"run folder: {run_dir.resolve()}", flush=True)
     try:  # config.yaml, .hydra/ and train.log: written only once every check has passed, under the lock
         summary = run_training(run, run_dir, prepare=None if run.resume else lambda: _start_run_folder(run_dir, cfg))
     except (CheckpointError, RunFolderRefused) as exc:  # refused before anything in the folder changed
@@ -92,9 +93,8 @@ def main(cfg: DictConfig) -> float:
     if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
         print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
     print(f"run folder: {run_dir.resolve()}")
-    nav = m["navigation_time"]  # null in summary.json when no case reached the goal
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
-          f"nav time {math.nan if nav is None else nav:.2f} s  return {m['average_return']:.4f}")
+          f"nav time {seconds(m['navigation_time'])}  return {m['average_return']:.4f}")
     return float(m["success_rate"])
 
 

@@ -56,10 +56,16 @@ class EpisodeMetrics:
     def summary(self) -> str:
         return (
             f"success {self.success_rate:.3f}  collision {self.collision_rate:.3f}  "
-            f"timeout {self.timeout_rate:.3f}  nav time {self.navigation_time:.2f} s  "
+            f"timeout {self.timeout_rate:.3f}  nav time {seconds(self.navigation_time)}  "
             f"return {self.average_return:.4f}  discomfort {self.discomfort_frequency:.4f}  "
             f"({self.episodes} episodes)"
         )
+
+
+def seconds(value: float | None) -> str:
+    """A mean time for a console line: ``11.53 s``, or ``– (no case reached the goal)`` where it is undefined
+    (``None`` read back from JSON, or NaN)."""
+    return "– (no case reached the goal)" if value is None or math.isnan(value) else f"{value:.2f} s"
 
 
 def episode_metrics(
