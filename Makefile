@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONHASHSEED ?= 0
 
-.PHONY: install lint test test-slow demo bench clean
+.PHONY: install lint test test-slow demo bench api-docs clean
 
 install: $(STAMP)
 
@@ -41,6 +41,10 @@ demo: $(STAMP)
 bench: $(STAMP)
 	$(PY) experiments/bench_env.py
 	$(PY) experiments/bench_train.py
+
+# the API reference with signatures, generated from the docstrings (open build/api/index.html)
+api-docs: $(STAMP)
+	$(PY) experiments/api_docs.py --out build/api
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis build src/*.egg-info

@@ -87,3 +87,22 @@ def test_check_pretrained_refuses_an_unknown_agent_listing_the_ones_that_exist()
     proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "check_pretrained.py"), "--agents", "nope"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--agents: no pretrained agent 'nope'" in proc.stderr and AGENTS[0].name in proc.stderr
+
+
+def test_load_agent_acts_as_evaluate_does():
+    """The README's Python example: ``load_agent``'s env and actor play test case 0 to the outcome evaluate gives."""
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from crowdrl.training import load_agent
+    from crowdrl.training.pipeline import evaluate_spec
+
+    agent = ROOT / "pretrained" / "sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0"
+    env, actor = load_agent(agent)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        episode = env.rollout(117, policy=actor)
+    record, _ = evaluate_spec(checkpoint=agent, episodes=1, record_episode=None)
+    event = int(episode["next", "event"][0, -1])
+    assert bool(episode["next", "done"][0, -1]) and event in (1, 2, 3)
+    assert (event == 1) == (record["success_rate"] == 1.0)
+    assert int(episode["step_count"][0, -1]) + 1 == episode.shape[-1]

@@ -8,6 +8,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable
 
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+
 import torch
 from filelock import FileLock, Timeout
 
@@ -145,6 +148,28 @@ def evaluate_network(run: RunConfig, net: torch.nn.Module, *, scenario: str | No
     env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario,
                    num_humans=num_humans)
     return evaluate(env, make_actor(run, env, net, predictor), num_episodes=episodes, record_episode=record_episode)
+
+
+def load_agent(checkpoint: Path | str, *, scenario: str | None = None, num_envs: int = 1, split: str = "test",
+               seed: int = TEST_SEED, device: str = "cpu") -> tuple[EnvBase, TensorDictModuleBase]:
+    """A trained agent (a run folder, a ``best.pt``, or a ``pretrained/`` folder) and an env to act in: the same
+    ``make_env`` and actor (its planner included) that training and ``evaluate.py`` use. Act deterministically
+    (``ExplorationType.DETERMINISTIC``), as in evaluation.
+
+    Example::
+
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+        env, actor = load_agent("pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0", num_envs=4)
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            episode = env.rollout(117, policy=actor)  # test cases 0..3 of test seed 0
+    """
+    from dataclasses import replace
+
+    run, net, data = load_trained_network(checkpoint)
+    run = replace(run, device=device)
+    predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
+    env = make_env(run, split=split, num_envs=num_envs, seed=seed, scenario=scenario)
+    return env, make_actor(run, env, net.to(device), None if predictor is None else predictor.to(device))
 
 
 def evaluate_best(run: RunConfig, run_dir: Path, *, render: bool = True, record_episode: int = 0) -> dict[str, Any]:
