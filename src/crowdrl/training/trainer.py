@@ -4,8 +4,9 @@ atomic checkpoints and resume.
 One ``Trainer`` is one run folder. The loop: collect ``num_envs x steps_per_batch`` frames with
 the exploration strategy's policy, write them to the replay buffer as n-step transitions, do
 ``updates_per_frame`` updates of batch ``batch_size`` per collected frame (each: the auxiliary
-learners' steps on the sampled batch, then the Q update's gradient steps), copy the target
-network every ``target_update_frames`` frames, validate greedily on held-out validation
+learners' steps on the sampled batch, then the Q update's gradient steps), update the target
+network (``train.target_tau`` < 1: Polyak averaging after every update, ``D3QNLoss.update_target_polyak``; 1: a hard
+copy every ``target_update_frames`` frames), validate greedily on held-out validation
 episodes every ``val_every_frames`` frames (the best policy is kept), checkpoint every
 ``checkpoint_every_frames`` frames. What the exploration variant adds comes through its
 :class:`~crowdrl.exploration.strategy.ExplorationStrategy`, what else learns on the sampled batches
