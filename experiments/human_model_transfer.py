@@ -37,6 +37,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -97,7 +98,7 @@ def train_one(folder: Path, cell: str, seed: int, preset: str) -> int:
         return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
 
 
-def test_one(agent: str | None, out: Path, cell: str, scenario: str, episodes: int, acting: list[str] = ()) -> int:
+def test_one(agent: str | None, out: Path, cell: str, scenario: str, episodes: int, acting: Sequence[str] = ()) -> int:
     """``evaluate.py`` of a checkpoint (``agent``; ``None``: the ORCA robot) on ``cell`` (skipped when done), acting
     with the act-time overrides ``acting``."""
     if (out / "eval.json").exists():

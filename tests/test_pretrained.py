@@ -106,3 +106,7 @@ def test_load_agent_acts_as_evaluate_does():
     assert bool(episode["next", "done"][0, -1]) and event in (1, 2, 3)
     assert (event == 1) == (record["success_rate"] == 1.0)
     assert int(episode["step_count"][0, -1]) + 1 == episode.shape[-1]
+    for kwargs, named in (({"num_envs": 0}, "num_envs"), ({"device": "cuda:9"}, "device"), ({"split": "x"}, "split"),
+                          ({"scenario": "moon"}, "scenario")):
+        with pytest.raises(ValueError, match=named):
+            load_agent(agent, **kwargs)

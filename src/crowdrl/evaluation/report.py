@@ -188,15 +188,20 @@ def check_metrics(metrics: Any, where: str, *, separation_key: str = "min_separa
     return metrics
 
 
-def read_json_record(path: Path | str) -> dict[str, Any]:
-    """A JSON object read from ``path``; :class:`RecordError` naming the file for anything else."""
-    path = Path(path)
+def _read_json(path: Path) -> Any:
+    """Any JSON value read from ``path``; :class:`RecordError` naming the file when missing or not JSON."""
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except FileNotFoundError:
         raise RecordError(f"{path}: missing") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise RecordError(f"{path}: not valid JSON ({exc})") from None
+
+
+def read_json_record(path: Path | str) -> dict[str, Any]:
+    """A JSON object read from ``path``; :class:`RecordError` naming the file for anything else."""
+    path = Path(path)
+    data = _read_json(path)
     if not isinstance(data, dict):
         raise RecordError(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
@@ -217,12 +222,7 @@ def read_eval_records(path: Path | str) -> list[dict[str, Any]]:
     (:func:`check_metrics`); :class:`RecordError` naming the file and what differs otherwise (another format,
     a newer version, a bad field)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise RecordError(f"{path}: missing") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise RecordError(f"{path}: not valid JSON ({exc})") from None
+    data = _read_json(path)
     if isinstance(data, list):  # version 1: several scenarios (pretrained/)
         records = data
     elif isinstance(data, dict) and ("format" in data or "version" in data):
@@ -343,8 +343,6 @@ def read_own_test_record(run_dir: Path | str) -> dict[str, Any]:
     path = run_dir / "eval.json"
     if path.is_file():
         record = dict(read_eval_record(path))
-        if record.get("scenario") is None:
-            record["scenario"] = _run_scenario(run_dir, {})
     elif (run_dir / "summary.json").is_file():
         path = run_dir / "summary.json"
         record = _legacy_run_test(read_summary(path)["test"], path)

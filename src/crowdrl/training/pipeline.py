@@ -165,6 +165,14 @@ def load_agent(checkpoint: Path | str, *, scenario: str | None = None, num_envs:
     """
     from dataclasses import replace
 
+    from crowdrl.training.validation import check_device
+
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs: must be an integer >= 1, got {num_envs!r}")
+    try:
+        check_device(device)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
     run, net, data = load_trained_network(checkpoint)
     run = replace(run, device=device)
     predictor = load_trained_predictor(run, data, checkpoint_path(checkpoint))
@@ -310,7 +318,6 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     from dataclasses import replace
 
     from crowdrl.evaluation import evaluate_orca
-    from crowdrl.evaluation.report import eval_record
     from crowdrl.evaluation.rollout import kept_bytes
     from crowdrl.sim.config import MAX_HUMANS, SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
