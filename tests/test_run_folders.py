@@ -599,3 +599,11 @@ def test_a_sweep_is_removed_only_while_no_job_wrote_into_it(tmp_path):
     (alone / "multirun.yaml").write_text("hydra: {}\n")
     discard_refused_sweeps()
     assert not (tmp_path / "alone").exists()  # the new parent too
+
+
+def test_the_demos_comparison_shows_an_undefined_navigation_time_as_a_dash():
+    from crowdrl.cli.demo import format_comparison
+
+    m = {"success_rate": 0.0, "collision_rate": 1.0, "timeout_rate": 0.0, "navigation_time": None, "average_return": -0.25}
+    text = format_comparison(m, {**m, "navigation_time": 13.9}, "agent")
+    assert "nan" not in text and "–" in text.splitlines()[1] and "13.90s" in text.splitlines()[2]

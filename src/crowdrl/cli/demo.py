@@ -56,9 +56,10 @@ def format_comparison(agent: dict, orca: dict, label: str) -> str:
     rows = [(label, agent), ("ORCA (same cases)", orca)]
     lines = [f"{'policy':<28} {'success':>8} {'collision':>9} {'timeout':>8} {'nav time':>9} {'return':>8}"]
     for name, m in rows:
-        nav = math.nan if m["navigation_time"] is None else m["navigation_time"]  # null: no case reached the goal
+        nav = m["navigation_time"]  # null (or NaN): no case reached the goal, shown as a dash
+        nav_cell = f"{'–':>9}" if nav is None or math.isnan(nav) else f"{nav:8.2f}s"
         lines.append(f"{name:<28} {m['success_rate']:8.3f} {m['collision_rate']:9.3f} {m['timeout_rate']:8.3f} "
-                     f"{nav:8.2f}s {m['average_return']:8.4f}")
+                     f"{nav_cell} {m['average_return']:8.4f}")
     return "\n".join(lines)
 
 
