@@ -70,13 +70,16 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
 
     from crowdrl.training import factories
     from crowdrl.training.config import validate
+    from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 
     torch.set_num_threads(1)
     run = validate({"train": {"num_envs": num_envs, "steps_per_batch": 8, "compile_acting": acting == "compiled"},
                     "env": {"orca_backend": backend}, "planning": {"enabled": False}})  # the greedy Q actor
     env = factories.make_env(run)
-    policy, _ = factories.make_exploration(run, env, factories.make_actor(run, env, make_network(run, 81)))
+    strategy = make_strategy(run.exploration)  # one strategy: the network it modifies is the one its policy schedules
+    actor = factories.make_actor(run, env, make_network(run, 81, strategy=strategy))
+    policy = factories.make_exploration(env, actor, strategy)
     it = iter(factories.make_collector(run, env, policy))
     for _ in range(10):
         next(it)

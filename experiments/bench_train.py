@@ -15,7 +15,7 @@ Measures, in one process: collecting frames with the acting policy through the T
 collector (env + policy), sampling a batch of 100 from the replay buffer (for ICM/RE3 this
 includes the sample-time intrinsic reward and ICM's own training step), the double-DQN loss
 and its gradients (``D3QNLoss.loss_and_grad``: three forward passes and one backward), and the
-optimiser step, the last two through the trainer's own ``update_once``. Projects the paper's budget (500k frames,
+optimiser step, the last two through the trainer's own learner (``D3QNLearner.step``). Projects the paper's budget (500k frames,
 500k updates of batch 100) from the measured rates. With several explorations, each variant's
 update cost is also given relative to the first one, all measured in the same process; the
 same for ``--loss eager compiled`` (the update runs eagerly or as one ``torch.compile`` graph,
@@ -93,12 +93,12 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     collect_s = time.perf_counter() - start
     collector.shutdown()
 
-    # the trainer's own update (Trainer.update_once), timed in two parts: sampling, then the rest
+    # the trainer's own update (its learner's D3QNLearner.step), timed in two parts: sampling, then the rest
     # "loss_and_grad": to the Q network's first optimiser step (the auxiliary learners' steps, ICM's or the crowd
     # predictor's, are in it); "optimizer": from that step to the end of the update (with counterfactual experience
     # the second batch's building, loss and step are in it too)
     parts: dict[str, list[float]] = {"sample": [], "loss_and_grad": [], "optimizer": []}
-    step = tr.optimizer.step
+    step = tr.learner.optimizer.step
 
     def timed_step(*a, **k):
         t = time.perf_counter()
@@ -106,20 +106,20 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
         marks.append(t)
         return out
 
-    tr.optimizer.step = timed_step
+    tr.learner.optimizer.step = timed_step
     for i in range(args.updates + 20):
         marks: list[float] = []
         t0 = time.perf_counter()
         sample = tr.buffer.sample()
         t1 = time.perf_counter()
-        tr.update_once(sample)  # learners' steps, (noise reset), loss and gradients, optimiser step, target copy when due
+        tr.learner.step(sample, i + 1)  # learners' steps, (noise reset), loss and gradients, optimiser step, target update
         t3 = time.perf_counter()
         if i >= 20:
             for key, value in zip(parts, (t1 - t0, marks[0] - t1, t3 - marks[0])):
                 parts[key].append(value)
-    tr.optimizer.step = step
+    tr.learner.optimizer.step = step
     tr.close()
-    flop_probe = (tr.loss, tr.buffer.sample())
+    flop_probe = (tr.learner.loss, tr.buffer.sample())
     ms = {k: 1e3 * statistics.mean(v) for k, v in parts.items()}
     update_ms = sum(ms.values())
     frames_per_s = collected / collect_s

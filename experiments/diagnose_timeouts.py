@@ -33,13 +33,14 @@ def load(path: Path):
     from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, load_trained_predictor
     from crowdrl.training.config import stored_config, validate
     from crowdrl.training.loss import D3QNLoss
+    from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 
     data = load_checkpoint(path)
     if "config" not in data:
         raise CheckpointError(f"{path} holds no run config")
     run = validate(stored_config(data["config"]), resources=False)  # a key it predates: what it ran with
-    net = make_network(run)
+    net = make_network(run, strategy=make_strategy(run.exploration))
     net.load_state_dict(data["net"] if "net" in data else D3QNLoss.online_state_dict(data["loss"]))
     return run, net.eval(), load_trained_predictor(run, data, path)
 

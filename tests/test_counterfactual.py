@@ -368,7 +368,7 @@ def test_an_intrinsic_bonus_with_n_step_returns_trains_with_counterfactual_exper
     try:
         trainer.train()
         sample = trainer.buffer.sample()
-        batch = trainer.update_part.counterfactual_batch(sample)
+        batch = trainer.learner.part.counterfactual_batch(sample)
         assert torch.equal(batch.get((ONE_STEP_KEY, "robot_rc")), batch.get(("next", "robot_rc")))
     finally:
         trainer.close()

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from crowdrl_testing import fresh_network
 from crowdrl.envs import CrowdNavEnv
 from crowdrl.sim import rng
 from crowdrl.sim.config import CrowdConfig
@@ -325,13 +326,12 @@ def test_the_planner_on_a_variable_crowd_plans_as_on_the_humans_present(predicto
     """planning.enabled with a crowd range: the planner reads the mask, and each row's plan equals
     the plan of the same state with the absent humans cut off."""
     from crowdrl.training.factories import make_actor, make_env, make_predictor_of
-    from crowdrl.training.variants import make_network
 
     torch.manual_seed(0)
     run = validate({"env": {"min_humans": 2, "max_humans": 6}, "train": {"num_envs": 12},
                     "planning": {"enabled": True, "predictor": predictor}})
     env = make_env(run, split="val")
-    net = make_network(run).eval()
+    net = fresh_network(run).eval()
     planner = make_actor(run, env, net, make_predictor_of(run, 0.25))
     assert "humans_mask" in planner.in_keys
     td = env.reset()
@@ -344,5 +344,5 @@ def test_the_planner_on_a_variable_crowd_plans_as_on_the_humans_present(predicto
         assert int(padded.action[row]) == int(alone.action[0])
     fixed = validate({"train": {"num_envs": 2}, "planning": {"enabled": True}})
     fixed_env = make_env(fixed, split="val")
-    assert "humans_mask" not in make_actor(fixed, fixed_env, make_network(fixed),
+    assert "humans_mask" not in make_actor(fixed, fixed_env, fresh_network(fixed),
                                            make_predictor_of(fixed, 0.25)).in_keys

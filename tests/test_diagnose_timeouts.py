@@ -8,9 +8,9 @@ from pathlib import Path
 
 import torch
 
+from crowdrl_testing import fresh_network
 from crowdrl.training.config import RunConfig
 from crowdrl.training.loss import D3QNLoss
-from crowdrl.training.variants import make_network
 
 ROOT = Path(__file__).resolve().parents[1]
 AGENT = ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0" / "best.pt"
@@ -24,12 +24,12 @@ def _script():
 
 def test_online_state_dict_rebuilds_the_online_network():
     torch.manual_seed(0)
-    net = make_network(RunConfig())
+    net = fresh_network(RunConfig())
     loss = D3QNLoss(net, ["robot_rc", "humans_rc"], gamma=0.9)
     with torch.no_grad():
         for p in loss.target_net.parameters():
             p.add_(1.0)  # the target differs: only the online weights may come back
-    fresh = make_network(RunConfig())
+    fresh = fresh_network(RunConfig())
     fresh.load_state_dict(D3QNLoss.online_state_dict(loss.state_dict()))
     for (name, a), b in zip(net.state_dict().items(), fresh.state_dict().values()):
         assert torch.equal(a, b), name

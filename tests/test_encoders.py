@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from crowdrl_testing import robot_centric_states
+from crowdrl_testing import robot_centric_states, fresh_network
 from crowdrl.models import (
     ENCODERS,
     LSTMRLEncoder,
@@ -245,7 +245,7 @@ def test_each_encoder_trains_through_hydra(tmp_path, name, exploration):
         trainer.close()
     assert summary["updates"] > 0 and summary["frames"] == 96
     assert all(torch.isfinite(p).all() for p in trainer.net.parameters())
-    assert trainer.loss.obs_keys == ["robot_rc", "humans_rc", "humans_mask"]
+    assert trainer.learner.loss.obs_keys == ["robot_rc", "humans_rc", "humans_mask"]
     sample = trainer.buffer.sample()
     assert sample.get("humans_mask").shape == (16, 4) and not bool(sample.get("humans_mask").all())
     if exploration != "egreedy":
@@ -258,11 +258,10 @@ def test_a_checkpoint_of_one_encoder_is_refused_by_another(tmp_path):
     from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, save_checkpoint
     from crowdrl.training.config import to_dict
     from crowdrl.training.pipeline import load_trained_network
-    from crowdrl.training.variants import make_network
 
     sgd3qn = validate({"encoder": {"name": "sgd3qn"}})
     sarl = to_dict(validate({"encoder": {"name": "sarl"}}))
     path = tmp_path / "best.pt"
-    save_checkpoint(path, {"net": make_network(sgd3qn).state_dict(), "config": sarl}, config_fingerprint(sarl))
+    save_checkpoint(path, {"net": fresh_network(sgd3qn).state_dict(), "config": sarl}, config_fingerprint(sarl))
     with pytest.raises(CheckpointError, match=r"best\.pt: the network shape does not match its config"):
         load_trained_network(path)

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from crowdrl.exploration import make_strategy
 from crowdrl.envs import CrowdNavEnv
 from crowdrl.evaluation import (average_returns, discount_per_step, episode_metrics, episode_records, evaluate,
                                  evaluate_orca)
@@ -92,9 +93,9 @@ def test_trained_style_actor_gives_the_old_loops_numbers():
 
     run = RunConfig(planning=PlanningConfig(enabled=False))  # the greedy QValueActor
     torch.manual_seed(0)
-    net = make_network(run)
+    net = make_network(run, strategy=make_strategy(run.exploration))
     env = make_env(run, split="test", num_envs=20, seed=0)
-    policy, _ = make_exploration(run, env, make_actor(run, env, net))
+    policy = make_exploration(env, make_actor(run, env, net), make_strategy(run.exploration))
     m, _ = evaluate(env, policy, num_episodes=20)
     for key, value in OLD_LOOP_NET.items():
         assert getattr(m, key) == pytest.approx(value, abs=0, rel=0), key

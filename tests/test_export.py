@@ -19,6 +19,7 @@ import torch
 onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
+from crowdrl_testing import fresh_network  # noqa: E402
 from crowdrl.envs.robot_centric import robot_centric  # noqa: E402
 from crowdrl.export import ENTITY_INPUTS, INPUTS, export_onnx  # noqa: E402
 from crowdrl.sim.kinematics import action_table  # noqa: E402
@@ -26,7 +27,6 @@ from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # n
 from crowdrl.training.config import sees_obstacles, to_dict, validate  # noqa: E402
 from crowdrl.training.factories import make_actor, make_env  # noqa: E402
 from crowdrl.training.pipeline import TEST_SEED  # noqa: E402
-from crowdrl.training.variants import make_network  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPORT = [sys.executable, str(ROOT / "experiments" / "export.py")]
@@ -54,7 +54,7 @@ def make_run_folder(folder: Path, overrides: dict, seed: int = 0) -> Path:
     run = validate({"planning": {"enabled": False}, **overrides})
     torch.manual_seed(seed)
     config = to_dict(run)
-    save_checkpoint(folder / "checkpoints" / "best.pt", {"net": make_network(run).state_dict(), "config": config,
+    save_checkpoint(folder / "checkpoints" / "best.pt", {"net": fresh_network(run).state_dict(), "config": config,
                                                           "frames": 0, "val": {}}, config_fingerprint(config))
     return folder
 

@@ -18,6 +18,7 @@ import torch
 onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
+from crowdrl_testing import fresh_network  # noqa: E402
 from crowdrl.evaluation.report import read_eval_record  # noqa: E402
 from crowdrl.export import FORMAT_VERSION, PLANNER_INPUTS, export_onnx, read_exported  # noqa: E402
 from crowdrl.policies.onnx_policy import OnnxPolicy, compare_on_test_cases  # noqa: E402
@@ -26,7 +27,6 @@ from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # n
 from crowdrl.training.config import to_dict, validate  # noqa: E402
 from crowdrl.training.factories import make_predictor_of  # noqa: E402
 from crowdrl.training.pipeline import evaluate_spec  # noqa: E402
-from crowdrl.training.variants import make_network  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "src" / "crowdrl" / "onnx_example.py"
@@ -49,7 +49,7 @@ def planning_folder(folder: Path, overrides: dict, seed: int = 0) -> Path:
     run = validate({**overrides, "planning": planning, "train": {"compile_acting": False}})
     torch.manual_seed(seed)
     config = to_dict(run)
-    payload = {"net": make_network(run).state_dict(), "config": config, "frames": 0, "val": {}}
+    payload = {"net": fresh_network(run).state_dict(), "config": config, "frames": 0, "val": {}}
     predictor = make_predictor_of(run, 0.25)
     if any(True for _ in predictor.parameters()):
         payload["predictor"] = predictor.state_dict()

@@ -11,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from crowdrl_testing import fresh_network
 from crowdrl.envs import CrowdNavEnv
 from crowdrl.sim.config import MAX_LIDAR_RAYS, CrowdConfig
 from crowdrl.sim.lidar import lidar_angles, lidar_scan, observe_lidar
@@ -223,7 +224,6 @@ def test_training_builds_envs_and_actors_that_ignore_the_scan():
     from crowdrl.training.checkpoint import config_fingerprint
     from crowdrl.training.config import to_dict
     from crowdrl.training.factories import make_actor, make_env
-    from crowdrl.training.variants import make_network
 
     small = {"train": {"num_envs": 2, "compile_acting": False}}
     for scenario in ("circle", "doorway"):
@@ -231,7 +231,7 @@ def test_training_builds_envs_and_actors_that_ignore_the_scan():
         env = make_env(run)
         td = env.reset()
         assert td["lidar"].shape == (2, 8)
-        actor = make_actor(run, env, make_network(run), ConstantVelocityPredictor(0.25))
+        actor = make_actor(run, env, fresh_network(run), ConstantVelocityPredictor(0.25))
         assert "lidar" not in actor.in_keys
         out = env.rollout(2, actor, break_when_any_done=False)
         assert out["next", "lidar"].shape == (2, 2, 8)

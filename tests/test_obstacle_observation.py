@@ -11,6 +11,7 @@ from torch import nn
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
+from crowdrl_testing import fresh_network
 from crowdrl.envs import ENTITY_DIM, CrowdNavEnv, RobotCentric, entity_tokens, obstacles_centric, robot_centric
 from crowdrl.models import make_encoder
 from crowdrl.models.predictor import ConstantVelocityPredictor
@@ -21,7 +22,6 @@ from crowdrl.sim.kinematics import action_table, decode_action
 from crowdrl.sim.obstacles import nearest_edges, obstacle_segments, point_obstacle_distance
 from crowdrl.training import validate
 from crowdrl.training.factories import ENTITY_OBS_KEYS, OBS_KEYS, make_actor, make_env
-from crowdrl.training.variants import make_network
 
 
 def _room(num_envs: int = 6, steps: int = 3) -> CrowdNavEnv:
@@ -160,19 +160,19 @@ def test_a_run_among_obstacles_reads_entity_tokens_and_an_open_one_does_not():
     small = {"train": {"num_envs": 2, "compile_acting": False}}
     door = validate({"env": {"scenario": "doorway"}, **small})
     circle = validate(small)
-    assert make_network(door).encoder.human_dim == ENTITY_DIM and make_network(circle).encoder.human_dim == 5
+    assert fresh_network(door).encoder.human_dim == ENTITY_DIM and fresh_network(circle).encoder.human_dim == 5
     env = make_env(door)
     td = env.reset()
     assert td["entities_rc"].shape == (2, 10 + 2, ENTITY_DIM)
-    actor = make_actor(door, env, make_network(door), ConstantVelocityPredictor(0.25))
+    actor = make_actor(door, env, fresh_network(door), ConstantVelocityPredictor(0.25))
     assert actor.entities and "action" in actor(td).keys()
     # a network trained in open space, evaluated among obstacles (zero-shot): the humans only
     door_env = make_env(circle, scenario="doorway")
     assert "entities_rc" not in door_env.reset().keys()
-    plain = make_actor(validate({**small, "planning": {"enabled": False}}), door_env, make_network(circle))
+    plain = make_actor(validate({**small, "planning": {"enabled": False}}), door_env, fresh_network(circle))
     assert tuple(plain.in_keys) == OBS_KEYS
     assert tuple(make_actor(validate({"env": {"scenario": "room"}, **small, "planning": {"enabled": False}}),
-                            make_env(door), make_network(door)).in_keys) == ENTITY_OBS_KEYS
+                            make_env(door), fresh_network(door)).in_keys) == ENTITY_OBS_KEYS
 
 
 def test_gymnasium_face_observes_the_nearest_edges():

@@ -287,11 +287,11 @@ def test_the_td_target_is_the_plain_double_dqn_target():
     assert "humans_mask" not in sample.keys()
     varying = validate({**EXACT, "env": {"num_humans": 4, "min_humans": 3}})
     assert "humans_mask" in stored_keys(varying, obs_keys(crowd_config(varying)))
-    before = trainer.loss(sample)["loss"]
+    before = trainer.learner.loss(sample)["loss"]
     with torch.no_grad():
         for p in trainer.predictor.parameters():
             p.add_(torch.randn_like(p))
-    assert torch.equal(trainer.loss(sample)["loss"], before)
+    assert torch.equal(trainer.learner.loss(sample)["loss"], before)
 
 
 def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_planner(tmp_path):

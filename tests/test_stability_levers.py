@@ -92,7 +92,7 @@ def test_polyak_targets_follow_the_online_network_every_update_and_hard_copies_s
     try:
         trainer.train()
         online = torch.cat([p.detach().flatten() for p in trainer.net.parameters()])
-        target = torch.cat([p.detach().flatten() for p in trainer.loss.target_net.parameters()])
+        target = torch.cat([p.detach().flatten() for p in trainer.learner.loss.target_net.parameters()])
         initial = _run(tmp_path / "fresh")  # same seed: the parameters the run started from
         start = torch.cat([p.detach().flatten() for p in initial.net.parameters()])
         initial.close()
@@ -106,27 +106,29 @@ def test_polyak_targets_follow_the_online_network_every_update_and_hard_copies_s
 def test_clipped_gradients_and_the_decayed_learning_rate(tmp_path):
     trainer = _run(tmp_path / "levers", grad_clip_norm=1e-3, lr_end=1e-4)
     norms = []
-    step = trainer.optimizer.step
+    step = trainer.learner.optimizer.step
 
     def spy(*a, **k):
         norms.append(math.sqrt(sum(float(p.grad.pow(2).sum()) for p in trainer.net.parameters() if p.grad is not None)))
         return step(*a, **k)
 
-    trainer.optimizer.step = spy
+    trainer.learner.optimizer.step = spy
     try:
         trainer.train()
     finally:
         trainer.close()
     assert norms and max(norms) <= 1e-3 * (1 + 1e-4)
-    lr = trainer.optimizer.param_groups[0]["lr"]
+    lr = trainer.learner.optimizer.param_groups[0]["lr"]
     assert lr == pytest.approx(1e-4 + (1e-3 - 1e-4) * max(0.0, 1 - 128 / 128))  # at total_frames: lr_end
 
 
 def test_layer_norm_head_normalises_each_hidden_layer_and_off_keeps_the_papers_parameters():
+    from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 
-    plain = make_network(validate({}, resources=False))
-    normed = make_network(validate({"train": {"q_layer_norm": True}}, resources=False))
+    plain_run, normed_run = validate({}, resources=False), validate({"train": {"q_layer_norm": True}}, resources=False)
+    plain = make_network(plain_run, strategy=make_strategy(plain_run.exploration))
+    normed = make_network(normed_run, strategy=make_strategy(normed_run.exploration))
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain.modules())
     assert sum(isinstance(m, torch.nn.LayerNorm) for m in normed.head.modules()) == 4  # trunk 2, value 1, advantage 1
     assert list(plain.head.state_dict()) == ["trunk.0.weight", "trunk.0.bias", "trunk.2.weight", "trunk.2.bias",
@@ -141,9 +143,10 @@ def test_layer_norm_head_normalises_each_hidden_layer_and_off_keeps_the_papers_p
 
 
 def test_layer_norm_head_composes_with_noisy_and_dropout_heads():
+    from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 
     for exploration in ("noisy", "dropout"):
-        net = make_network(validate({"train": {"q_layer_norm": True}, "exploration": {"name": exploration}},
-                                    resources=False))
+        run = validate({"train": {"q_layer_norm": True}, "exploration": {"name": exploration}}, resources=False)
+        net = make_network(run, strategy=make_strategy(run.exploration))
         assert sum(isinstance(m, torch.nn.LayerNorm) for m in net.head.modules()) == 4, exploration

@@ -80,7 +80,7 @@ def test_a_strategy_registered_outside_the_trainer_trains_logs_and_checkpoints(t
     assert strategy.calls == {"schedule": 3, "before_collection": 2, "before_update": summary["updates"]}
     assert strategy.learner.steps == summary["updates"] > 0
     assert load_checkpoint(tmp_path / "checkpoints" / "last.pt")["counting"] == summary["updates"]
-    assert 1 <= trainer.learner_scalars["counting_steps"] <= summary["updates"]  # the last batch's mean
+    assert 1 <= trainer.learner.scalars()["counting_steps"] <= summary["updates"]  # the last batch's mean
     rows = [json.loads(line) for line in (tmp_path / "scalars.jsonl").read_text().splitlines()]
     assert all("train/counting_steps" in r and "train/epsilon" in r for r in rows if r["kind"] == "train")
 

@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import DQNLoss
 
+from crowdrl_testing import fresh_network
 from crowdrl.evaluation.report import read_eval_record
 from crowdrl.models import make_q_actor
 from crowdrl.training import CheckpointError, ConfigError, NStepReturn, load_checkpoint, nstep_transitions, validate
@@ -357,13 +358,12 @@ def test_compiled_acting_equals_eager_and_shares_the_parameters():
     two batch shapes (the states and the look-ahead candidates)."""
     from crowdrl.exploration.noisy import reset_noise
     from crowdrl.training import factories
-    from crowdrl.training.variants import make_network
 
     torch.manual_seed(0)
     runs = {c: validate({"train": {"num_envs": 4, "compile_acting": c}, "exploration": {"name": "noisy"},
                          "planning": {"enabled": True, "predictor": "const_vel"}}) for c in (False, True)}
     env = factories.make_env(runs[False])
-    net = make_network(runs[False], 81)
+    net = fresh_network(runs[False], 81)
     predictor = factories.make_predictor_of(runs[False], 0.25)
     actors = {c: factories.make_actor(run, env, net, predictor) for c, run in runs.items()}
     td = env.reset()

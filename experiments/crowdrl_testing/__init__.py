@@ -315,32 +315,43 @@ def robot_centric_states(*batch: int, n: int = 10, dtype: torch.dtype = torch.fl
     return robot, humans
 
 
+def fresh_network(run, num_actions: int = 81):
+    """A fresh Q network of ``run`` modified by a strategy of its own (``make_strategy(run.exploration)``): for
+    tests that load weights into it or act greedily with it, where no exploration schedule acts."""
+    from crowdrl.exploration import make_strategy
+    from crowdrl.training.variants import make_network
+
+    return make_network(run, num_actions, strategy=make_strategy(run.exploration))
+
+
 class KilledRun(BaseException):
     """Stops a training run mid-update as SIGKILL would (a ``BaseException``: no handler of the run catches it)."""
 
 
 def train_until_killed(run, folder, frame: int) -> None:
-    """Train ``run`` into ``folder`` and kill it in the first update at ``frame`` collected frames
-    (what an exact-resume test resumes from); fails if the run ends before that frame."""
+    """Train ``run`` into ``folder`` and kill it in the updates of the batch that reaches ``frame`` collected
+    frames, after that batch entered the replay buffer (what an exact-resume test resumes from); fails if
+    the run ends before that frame."""
     from crowdrl.training.pipeline import run_training
     from crowdrl.training.trainer import Trainer
 
-    update_once = Trainer.update_once
+    update = Trainer.update
 
-    def dies_at_frame(self, sample):
+    def dies_at_frame(self, frames):
         if self.counters.frames == frame:
             raise KilledRun(f"killed at frame {frame}")
-        return update_once(self, sample)
+        return update(self, frames)
 
-    Trainer.update_once = dies_at_frame
+    Trainer.update = dies_at_frame
     try:
         run_training(run, folder, render=False)
     except KilledRun:
         return
     finally:
-        Trainer.update_once = update_once
+        Trainer.update = update
     raise AssertionError(f"the run ended without an update at frame {frame}")
 
 
-__all__ = ["KINDS", "OBSTACLE_KINDS", "ORCA_TOLERANCE", "SCENE_PARAMS", "KilledRun", "padded_batch", "padded_obstacles",
-           "random_obstacle_scene", "random_scene", "robot_centric_states", "rvo2_velocities", "train_until_killed"]
+__all__ = ["KINDS", "OBSTACLE_KINDS", "ORCA_TOLERANCE", "SCENE_PARAMS", "KilledRun", "fresh_network", "padded_batch",
+           "padded_obstacles", "random_obstacle_scene", "random_scene", "robot_centric_states", "rvo2_velocities",
+           "train_until_killed"]

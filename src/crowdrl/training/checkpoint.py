@@ -222,6 +222,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None, *, co
     infinite weights (naming the parameter), or (given ``fingerprint``) a checkpoint written by a
     run with another configuration (given ``config`` too, the loading run's: naming the keys that differ).
     """
+    from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 
     ckpt = checkpoint_path(path)
@@ -236,7 +237,7 @@ def load_trained_network(path: Path | str, fingerprint: str | None = None, *, co
         raise CheckpointError(f"{ckpt}: its config cannot be rebuilt by this code version: {exc}") from None
     if data.get("fingerprint") != config_fingerprint(to_dict(run)):
         raise CheckpointError(f"{ckpt}: its fingerprint does not match the config stored with it (edited or foreign file)")
-    net = make_network(run)
+    net = make_network(run, strategy=make_strategy(run.exploration))  # what acts on it: the evaluation's policy
     try:
         net.load_state_dict(data["net"])
     except RuntimeError as exc:

@@ -1,6 +1,6 @@
 """Factories of a run, in the TorchRL ``sota-implementations`` style: ``make_env``,
-``make_actor``, ``make_exploration``, ``make_loss``, ``make_buffer``, ``make_learners``,
-``make_collector``.
+``make_actor``, ``make_exploration``, ``make_loss``, ``make_learner``, ``make_buffer``,
+``make_learners``, ``make_collector``.
 
 Training, validation, the final test and ``experiments/evaluate.py`` build their envs with the
 same :func:`make_env` and act with the same actor, so there is one rollout path
@@ -21,7 +21,7 @@ from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.evaluation.rollout import crowd_env_of
 from crowdrl.auxiliary import AuxiliaryLearner
-from crowdrl.exploration import ExplorationStrategy, ReplayContext, make_strategy
+from crowdrl.exploration import ExplorationStrategy, ReplayContext
 from crowdrl.exploration.intrinsic import seeded_init
 from crowdrl.models import make_q_actor
 from crowdrl.compile import CompiledModule
@@ -29,6 +29,7 @@ from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
 from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
 from crowdrl.training.config import RunConfig, crowd_range, sees_obstacles
+from crowdrl.training.learner import D3QNLearner
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.nstep import NStepReturn
@@ -127,18 +128,15 @@ def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | Non
         return make_predictor(run.planning.predictor, time_step).to(run.device)
 
 
-def make_exploration(run: RunConfig, env: EnvBase, actor: TensorDictModuleBase,
-                     strategy: ExplorationStrategy | None = None) -> tuple[TensorDictSequential, ExplorationStrategy]:
-    """The acting policy of ``strategy`` (default: ``make_strategy(run.exploration)``) and the
-    strategy: ``actor`` then ε-greedy (ε = 0 for the variants that explore otherwise).
+def make_exploration(env: EnvBase, actor: TensorDictModuleBase, strategy: ExplorationStrategy) -> TensorDictSequential:
+    """The acting policy of ``strategy`` (the one that modified the actor's network): ``actor`` then
+    ε-greedy (ε = 0 for the variants that explore otherwise).
 
     Under ``ExplorationType.DETERMINISTIC`` (evaluation) the ε-greedy step passes the greedy
     action through, so the same policy serves collection and evaluation. ε is set by
     ``strategy.schedule(frames)``.
     """
-    if strategy is None:
-        strategy = make_strategy(run.exploration)
-    return strategy.policy(actor, env.action_spec), strategy
+    return strategy.policy(actor, env.action_spec)
 
 
 def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_KEYS) -> D3QNLoss:
@@ -196,6 +194,23 @@ def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...]
                                     reward_bonus=reward_bonus, one_step_key=one_step)
 
 
+def make_learner(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
+                 strategy: ExplorationStrategy, predictor: torch.nn.Module | None) -> D3QNLearner:
+    """The Q network's learner (:class:`~crowdrl.training.learner.D3QNLearner`): the loss on ``keys``, Adam,
+    the update part, the auxiliary learners (the ``strategy``'s, the planner's ``predictor``), the
+    strategy's hook before each update, the gradient clip, the target rule (Polyak ``train.target_tau`` < 1,
+    else a hard copy every ``train.target_update_frames`` frames of updates) and the learning-rate schedule."""
+    t = run.train
+    loss = make_loss(run, net, keys)
+    optimizer = make_optimizer(run, net)
+    learners = make_learners(run, predictor, keys, strategy)
+    part = make_update_part(run, net, keys, crowd, strategy.reward_bonus())
+    return D3QNLearner(loss, optimizer, part, learners, before_update=strategy.before_update,
+                       grad_clip_norm=t.grad_clip_norm, target_tau=t.target_tau,
+                       updates_per_copy=max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9))),
+                       lr=None if t.lr_end is None else (t.lr, t.lr_end, t.total_frames))
+
+
 def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
     """``buffer.state_dict()`` with the storage's slots never written set to zero: the storage is
     allocated uninitialised (``torch.empty``), so those bytes would differ between identical runs
@@ -225,6 +240,5 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
 
 
 __all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict", "crowd_config",
-           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_learners", "make_loss",
-           "make_optimizer",
-           "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]
+           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_learner", "make_learners",
+           "make_loss", "make_optimizer", "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]

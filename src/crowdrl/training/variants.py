@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import Callable
 
 from crowdrl.envs.robot_centric import ENTITY_DIM
-from crowdrl.exploration import ExplorationStrategy, ReplayContext, make_strategy
+from crowdrl.exploration import ExplorationStrategy, ReplayContext
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
 from crowdrl.training.config import RunConfig, sees_obstacles
@@ -36,13 +36,12 @@ def encoder_kwargs(run: RunConfig) -> dict:
     return {"human_dim": ENTITY_DIM} if sees_obstacles(run) else {}
 
 
-def make_network(run: RunConfig, num_actions: int = 81, strategy: ExplorationStrategy | None = None) -> CrowdQNetwork:
-    """The Q network of the run's encoder (fresh parameters), modified by its exploration
-    ``strategy`` (default: ``make_strategy(run.exploration)``)."""
+def make_network(run: RunConfig, num_actions: int = 81, *, strategy: ExplorationStrategy) -> CrowdQNetwork:
+    """The Q network of the run's encoder (fresh parameters), modified by its exploration ``strategy``
+    (``make_strategy(run.exploration)``): required, so that the policy acting on the network and the
+    strategy that modified it (a noisy network's noise, a dropout head's p) are the same object."""
     net = make_q_network(run.encoder.name, num_actions=num_actions, head_layer_norm=run.train.q_layer_norm,
                          **encoder_kwargs(run))
-    if strategy is None:
-        strategy = make_strategy(run.exploration)
     return strategy.modify_network(net)
 
 
