@@ -115,6 +115,27 @@ def check_plain(value: Any, where: str = "payload") -> None:
             check_plain(item, f"{where}[{i}]")
 
 
+def merge_payload(payload: dict[str, Any], part: dict[str, Any], owner: str) -> None:
+    """Add ``part``'s top-level checkpoint keys to ``payload``; ``KeyError`` naming ``owner`` for a key already there."""
+    clash = sorted(set(part) & set(payload))
+    if clash:
+        raise KeyError(f"{owner} writes checkpoint keys already taken: {clash}")
+    payload.update(part)
+
+
+def rng_state() -> dict[str, Any]:
+    """The global torch RNG states a checkpoint holds for an exact resume (``torch_rng``, ``cuda_rng``)."""
+    return {"torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None}
+
+
+def restore_rng(data: dict[str, Any]) -> None:
+    """Set the global torch RNG states of a checkpoint (:func:`rng_state`'s keys)."""
+    torch.set_rng_state(data["torch_rng"])
+    if data.get("cuda_rng") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(data["cuda_rng"])
+
+
 def save_checkpoint(path: Path, payload: dict[str, Any], fingerprint: str) -> None:
     """``torch.save`` the payload with format/fingerprint metadata, atomically.
 

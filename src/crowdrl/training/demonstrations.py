@@ -139,6 +139,22 @@ class DemoReport:
     search_s: float
     play_s: float
 
+    def summary(self) -> str:
+        """One line for the run's log."""
+        return (f"demonstrations: {self.cases} cases searched, {self.solved} solved, {self.stored_paths} paths stored "
+                f"({self.transitions} transitions), {self.cases - self.solved} unsolved, "
+                f"{self.solved - self.stored_paths} dropped by the replay; {self.search_s:.1f} s searching, "
+                f"{self.play_s:.1f} s playing")
+
+    def log_row(self) -> dict[str, float]:
+        """The run's ``kind: demo`` row at frame 0 (``train/demo_*``, ``time/demo_*_s``)."""
+        return {"kind": "demo", "frames": 0, "updates": 0, "episodes": 0,
+                "train/demo_cases": self.cases, "train/demo_solved": self.solved,
+                "train/demo_unsolved": self.cases - self.solved,
+                "train/demo_dropped": self.solved - self.stored_paths,
+                "train/demo_transitions": self.transitions,
+                "time/demo_search_s": self.search_s, "time/demo_play_s": self.play_s}
+
 
 def add_demonstrations(buffer: TensorDictReplayBuffer, make_play_env, cfg: CrowdConfig, seed: int, cases: int,
                        widths: Sequence[int], keys: Sequence[NestedKey], *,

@@ -1,4 +1,4 @@
-"""Run logging: every scalar to CSV/JSONL in the run folder, optionally mirrored to wandb."""
+"""Run logging: every scalar to CSV/JSONL in the run folder, optionally mirrored to wandb; the progress bar."""
 
 from __future__ import annotations
 
@@ -74,6 +74,18 @@ class ScalarLog:
         if not self._f.closed:
             self._f.close()
         self.flush_csv()
+
+
+def progress_bar(total: int, initial: int):
+    """A tqdm bar over frames (``logger.progress_bar``), from ``initial`` of ``total``."""
+    try:
+        from tqdm.auto import tqdm
+    except ImportError as exc:
+        from crowdrl._extras import missing
+
+        raise missing("tqdm", "train", "the progress bar (logger.progress_bar=false does without)") from exc
+
+    return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 
 
 def wandb_mode(mode: str) -> str:

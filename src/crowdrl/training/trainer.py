@@ -31,14 +31,15 @@ from crowdrl.envs.episodes import FinishedEpisode, episode_statistics, finished_
 from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration import make_strategy
 from crowdrl.files import atomic_write_json
-from crowdrl.training.checkpoint import CheckpointError, config_fingerprint, load_checkpoint, save_checkpoint
+from crowdrl.training.checkpoint import (CheckpointError, config_fingerprint, load_checkpoint, merge_payload,
+                                        restore_rng, rng_state, save_checkpoint)
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
 from crowdrl.training.counters import Counters
 from crowdrl.training.demonstrations import add_demonstrations
 from crowdrl.training.factories import (buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
                                         make_exploration, make_learner, make_predictor_of, obs_keys, stored_keys)
 from crowdrl.training.learner import NonFiniteError
-from crowdrl.training.scalars import ScalarLog, WandbMirror
+from crowdrl.training.scalars import ScalarLog, WandbMirror, progress_bar
 from crowdrl.training.variants import make_network, replay_context
 
 
@@ -120,8 +121,7 @@ class Trainer:
         payload = {
             **self.learner.state_dict(),  # loss, optimizer, part_losses, update_part
             "counters": self.counters.__dict__.copy(),
-            "torch_rng": torch.get_rng_state(),
-            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
+            **rng_state(),  # torch_rng, cuda_rng
             "config": self.config_dict,
             "wandb_id": self.wandb.id if self.wandb else None,
             # for an exact resume: the in-flight episodes, the finished ones not yet logged (plain tuples)
@@ -130,7 +130,7 @@ class Trainer:
         }
         # the strategy's and the learners' own top-level keys
         for part in (self.strategy, *self.learner.learners):
-            _merge(payload, part.state_dict(), type(part).__name__)
+            merge_payload(payload, part.state_dict(), type(part).__name__)
         if self.run.train.save_buffer:
             payload["buffer"] = buffer_state_dict(self.buffer)  # unwritten slots zeroed: identical runs, same bytes
         return payload
@@ -141,18 +141,12 @@ class Trainer:
         self.env.base_env.restore(data.get("env"))  # first: it names an older file's format
         self.learner.load_state_dict(data)
         self.counters = Counters.from_dict(data["counters"])
-        self._set_rng(data)
+        restore_rng(data)
         self._pending_episodes = [FinishedEpisode(*e) for e in data["pending_episodes"]]
         for part in (self.strategy, *self.learner.learners):
             part.load_state_dict(data)
         if "buffer" in data:
             self.buffer.load_state_dict(data["buffer"])
-
-    @staticmethod
-    def _set_rng(data: dict[str, Any]) -> None:
-        torch.set_rng_state(data["torch_rng"])
-        if data.get("cuda_rng") is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(data["cuda_rng"])
 
     def save(self, name: str = "last.pt") -> Path:
         path = self.ckpt_dir / name
@@ -207,8 +201,8 @@ class Trainer:
             self._add_demonstrations()
         collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
         if resume_data:  # the collector's set-up may draw random numbers: the stream continues from here
-            self._set_rng(resume_data)
-        bar = _progress(run.logger.progress_bar, t.total_frames, c.frames)
+            restore_rng(resume_data)
+        bar = progress_bar(t.total_frames, c.frames) if run.logger.progress_bar else None
         recent = self._pending_episodes
         try:
             tick = time.perf_counter()
@@ -260,19 +254,10 @@ class Trainer:
         run, d, c = self.run, self.run.train.demonstrations, self.counters
         report = add_demonstrations(self.buffer, lambda n: make_env(run, split="train", num_envs=n), self.crowd_cfg,
                                     run.seed, d.cases, d.widths, self.stored_keys)
-        c.demo_transitions = report.transitions
-        c.demo_s = report.search_s + report.play_s
-        _log.info("demonstrations: %d cases searched, %d solved, %d paths stored (%d transitions), %d unsolved, "
-                  "%d dropped by the replay; %.1f s searching, %.1f s playing", report.cases, report.solved,
-                  report.stored_paths, report.transitions, report.cases - report.solved,
-                  report.solved - report.stored_paths, report.search_s, report.play_s)
+        c.demo_transitions, c.demo_s = report.transitions, report.search_s + report.play_s
+        _log.info(report.summary())
         if not any(r.get("kind") == "demo" for r in self.log.rows()):  # a restart from scratch logged it already
-            self.emit({"kind": "demo", "frames": 0, "updates": 0, "episodes": 0,
-                       "train/demo_cases": report.cases, "train/demo_solved": report.solved,
-                       "train/demo_unsolved": report.cases - report.solved,
-                       "train/demo_dropped": report.solved - report.stored_paths,
-                       "train/demo_transitions": report.transitions,
-                       "time/demo_search_s": report.search_s, "time/demo_play_s": report.play_s})
+            self.emit(report.log_row())
 
     def _summary(self) -> dict[str, Any]:
         c = self.counters
@@ -354,27 +339,6 @@ class Trainer:
         if self.wandb is not None:
             self.wandb.close()
             self.wandb = None
-
-
-def _merge(payload: dict[str, Any], part: dict[str, Any], owner: str) -> None:
-    """Add ``part``'s top-level checkpoint keys to ``payload``; ``KeyError`` for a key already there."""
-    clash = sorted(set(part) & set(payload))
-    if clash:
-        raise KeyError(f"{owner} writes checkpoint keys already taken: {clash}")
-    payload.update(part)
-
-
-def _progress(enabled: bool, total: int, initial: int):
-    if not enabled:
-        return None
-    try:
-        from tqdm.auto import tqdm
-    except ImportError as exc:
-        from crowdrl._extras import missing
-
-        raise missing("tqdm", "train", "the progress bar (logger.progress_bar=false does without)") from exc
-
-    return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, smoothing=0.05)
 
 
 __all__ = ["Trainer", "NonFiniteError", "CheckpointError"]
