@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.cases < 1 or a.steps < 1 or min(a.humans) < 1:
         p.error("--cases, --steps and --humans: must be >= 1")
     from crowdrl.export import PLANNER_INPUTS, export_onnx, read_exported
-    from crowdrl.policies.onnx_policy import OnnxPolicy
+    from crowdrl.onnx_policy import OnnxPolicy
     from crowdrl.training.factories import make_env
 
     torch.set_num_threads(1)

@@ -24,7 +24,7 @@ import torch
 
 from crowdrl.evaluation.report import parse_run_group
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
-from crowdrl.training.pipeline import evaluate_spec
+from crowdrl.agents import evaluate_spec
 from crowdrl.tables import markdown_table
 
 METRICS = ("success_rate", "collision_rate", "timeout_rate", "navigation_time", "average_return")

@@ -24,7 +24,7 @@ SCENARIOS = ("circle", "square")
 def publish(run_dir: Path, name: str, episodes: int = 1000) -> list[dict]:
     from crowdrl.evaluation.report import write_records
     from crowdrl.training.checkpoint import checkpoint_path, load_trained_network
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     load_trained_network(run_dir)  # refuses a missing, unsafe, foreign or non-finite checkpoint first
     out = PRETRAINED / name

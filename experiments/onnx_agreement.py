@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from crowdrl.export import export_onnx, read_exported
-    from crowdrl.policies.onnx_policy import compare_on_test_cases
+    from crowdrl.agents import compare_on_test_cases
     from crowdrl.training import CheckpointError
 
     torch.set_num_threads(1)

@@ -216,7 +216,7 @@ def test_the_ceiling_command_writes_a_replayed_file_and_never_overwrites(monkeyp
 
 
 def test_evaluate_reports_the_gap_and_refuses_a_ceiling_of_other_cases(tmp_path, circle_sample):
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     _, ceiling = circle_sample
     path = tmp_path / "c.json"

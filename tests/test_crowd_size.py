@@ -281,7 +281,7 @@ def range_run(tmp_path_factory):
 
 @pytest.mark.parametrize("num_humans", [1, 7])
 def test_a_model_trained_on_a_range_is_tested_on_any_fixed_crowd(range_run, num_humans):
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     record, _ = evaluate_spec(checkpoint=range_run, episodes=6, num_humans=num_humans, batch=3)
     assert record["episodes"] == 6
@@ -291,7 +291,7 @@ def test_a_model_trained_on_a_range_is_tested_on_any_fixed_crowd(range_run, num_
 
 
 def test_eval_num_humans_out_of_range_is_named(range_run):
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     for bad in (0, 65, 2.5):
         with pytest.raises(ValueError, match=r"eval\.num_humans"):

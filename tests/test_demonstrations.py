@@ -168,10 +168,10 @@ def test_a_killed_run_with_demonstrations_resumed_with_its_buffer_is_bit_identic
                               "checkpoint_every_frames": 64, "test_episodes": 4, "save_buffer": True,
                               "compile_loss": False, "counterfactual": {"mode": "second_update", "k": 3},
                               "demonstrations": {"cases": 3, "widths": [8, 32]}}})
-    run_training(run, tmp_path / "ref", render=False)
+    run_training(run, tmp_path / "ref")
     train_until_killed(run, tmp_path / "run", frame=224)
     assert load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["counters"]["frames"] == 192
-    run_training(run, tmp_path / "run", render=False)
+    run_training(run, tmp_path / "run")
 
     def final(folder):
         last = load_checkpoint(folder / "checkpoints" / "last.pt")

@@ -147,7 +147,8 @@ def test_demo_script_trains_tests_and_compares_with_orca(tmp_path):
                            "train.test_episodes=6"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     files = {p.name for p in (tmp_path / "run").iterdir()}
-    assert {"learning_curves.png", "test_case0.png", "test_case0.gif", "eval.json", "demo.json", "config.yaml"} <= files
+    assert {"learning_curves.png", "test_case0.png", "test_case0.gif", "test_case0.trajectory.json", "eval.json",
+            "demo.json", "config.yaml"} <= files
     result = json.loads((tmp_path / "run" / "demo.json").read_text())
     assert result["test_cases"] == 6 and result["agent"]["episodes"] == 6 and result["orca"]["episodes"] == 6
     assert result["beats_orca"] == (result["agent"]["success_rate"] > result["orca"]["success_rate"])

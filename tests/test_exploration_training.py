@@ -53,7 +53,7 @@ def test_every_variant_trains_validates_and_tests(tmp_path, name):
     train_rows = [r for r in rows if r["kind"] == "train"]
     if name in ("icm", "re3"):
         assert train_rows and all(r["train/intrinsic_reward_int_raw_mean"] > 0 for r in train_rows)
-    result = evaluate_best(trainer.run, tmp_path / name, render=False)  # noisy: parameters saved under own names
+    result = evaluate_best(trainer.run, tmp_path / name)  # noisy: parameters saved under own names
     assert result["metrics"]["episodes"] == 4
 
 

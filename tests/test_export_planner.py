@@ -21,12 +21,13 @@ onnxruntime = pytest.importorskip("onnxruntime")
 from crowdrl_testing import fresh_network  # noqa: E402
 from crowdrl.evaluation.report import read_eval_record  # noqa: E402
 from crowdrl.export import FORMAT_VERSION, PLANNER_INPUTS, export_onnx, read_exported  # noqa: E402
-from crowdrl.policies.onnx_policy import OnnxPolicy, compare_on_test_cases  # noqa: E402
+from crowdrl.agents import compare_on_test_cases  # noqa: E402
+from crowdrl.onnx_policy import OnnxPolicy  # noqa: E402
 from crowdrl.training import CheckpointError  # noqa: E402
 from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
 from crowdrl.training.config import to_dict, validate  # noqa: E402
 from crowdrl.training.factories import make_predictor_of  # noqa: E402
-from crowdrl.training.pipeline import evaluate_spec  # noqa: E402
+from crowdrl.agents import evaluate_spec  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "src" / "crowdrl" / "onnx_example.py"

@@ -216,7 +216,7 @@ def test_evaluate_py_takes_the_humans_model_in_one_override_and_refuses_a_bad_on
 
 
 def test_a_pretrained_agent_is_evaluated_among_other_humans():
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     agent = ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0"
     plain, _ = evaluate_spec(checkpoint=agent, episodes=3, batch=3)
@@ -231,7 +231,7 @@ def test_a_social_force_agent_is_refused_among_obstacles_naming_the_keys(tmp_pat
     from crowdrl.training.checkpoint import config_fingerprint, load_checkpoint, save_checkpoint
     from crowdrl.training.compat import stored_config
     from crowdrl.training.config import to_dict
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
     from crowdrl.training.validation import validate
 
     data = load_checkpoint(ROOT / "pretrained" / "sgd3qn-planning-re3-demo-s0" / "best.pt")

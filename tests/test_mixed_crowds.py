@@ -319,7 +319,7 @@ def test_the_gymnasium_ids_take_the_shares():
 
 
 def test_evaluate_spec_takes_a_mixed_crowd_and_refuses_shares_without_it():
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     record, _ = evaluate_spec(policy="orca", episodes=2, batch=2, human_model="mixed", social_force_share=0.3,
                               linear_share=0.3)

@@ -300,12 +300,13 @@ def test_a_killed_planning_run_resumed_is_bit_identical_and_tests_with_the_plann
     predictor and the test goes through the planner."""
     from crowdrl_testing import train_until_killed
     from crowdrl.training.checkpoint import load_checkpoint
-    from crowdrl.training.pipeline import evaluate_spec, run_training
+    from crowdrl.agents import evaluate_spec
+    from crowdrl.training.pipeline import run_training
 
     run = validate(EXACT)
-    run_training(run, tmp_path / "ref", render=False)
+    run_training(run, tmp_path / "ref")
     train_until_killed(run, tmp_path / "run", frame=224)
-    run_training(run, tmp_path / "run", render=False)
+    run_training(run, tmp_path / "run")
 
     ref, got = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt") for d in ("ref", "run"))
     for part in ("loss", "predictor"):

@@ -95,7 +95,7 @@ def test_load_agent_acts_as_evaluate_does():
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from crowdrl.training import load_agent
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     agent = ROOT / "pretrained" / "sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0"
     env, actor = load_agent(agent)

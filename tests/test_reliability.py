@@ -190,7 +190,7 @@ def test_another_runs_best_checkpoint_is_refused(smoke_runs, tmp_path):
     shutil.copyfile(smoke_runs[1] / "checkpoints" / "best.pt", run / "checkpoints" / "best.pt")
     (run / "eval.json").unlink()
     with pytest.raises(CheckpointError, match="another configuration"):
-        evaluate_best(validate(OmegaConf.load(run / "config.yaml")), run, render=False)
+        evaluate_best(validate(OmegaConf.load(run / "config.yaml")), run)
     assert not (run / "eval.json").exists()
 
 
@@ -317,12 +317,12 @@ def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrup
     from crowdrl.training.pipeline import run_training
 
     run = _exact_run(name)
-    run_training(run, tmp_path / "ref", render=False)
+    run_training(run, tmp_path / "ref")
     train_until_killed(run, tmp_path / "run", frame=224)
     from crowdrl.training.checkpoint import load_checkpoint
 
     assert load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["counters"]["frames"] == 192
-    run_training(run, tmp_path / "run", render=False)
+    run_training(run, tmp_path / "run")
 
     ref_weights, ref_metrics, ref_rows = _final(tmp_path / "ref")
     weights, metrics, rows = _final(tmp_path / "run")

@@ -381,7 +381,7 @@ def test_a_runs_record_is_cross_checked_against_its_own_summary(tmp_path):
     from omegaconf import OmegaConf
 
     from crowdrl.evaluation.report import RecordError, read_run_eval_record
-    from crowdrl.evaluation.reproduction import collect
+    from crowdrl.reproduction.table import collect
     from crowdrl.reproduction.plan import eval_path, make_plan
     from crowdrl.resources import config_dir
 

@@ -59,7 +59,7 @@ def test_a_table_rebuilt_by_a_call_that_trains_nothing_keeps_how_the_training_ca
     re-tabled them; a table written before that was recorded names none."""
     from omegaconf import OmegaConf
 
-    from crowdrl.evaluation.reproduction import launch_mode, markdown, recorded_wall, write_table
+    from crowdrl.reproduction.table import launch_mode, markdown, recorded_wall, write_table
     from crowdrl.reproduction.plan import make_plan
     from crowdrl.resources import config_dir
 

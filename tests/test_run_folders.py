@@ -188,7 +188,7 @@ def test_seeds_beyond_int64_are_refused_naming_the_key():
     with pytest.raises(ConfigError, match=r"^seed: must lie in 0\.\.2\*\*63-1"):
         validate(RunConfig(seed=big))
     assert validate(RunConfig(seed=big - 1)).seed == big - 1
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     with pytest.raises(ValueError, match=r"^eval\.seed: must lie in 0\.\.2\*\*63-1"):
         evaluate_spec(policy="orca", seed=5 + 2**64, episodes=1)
@@ -452,7 +452,7 @@ def test_a_checkpoint_with_non_finite_weights_is_refused_naming_it_and_the_param
     import torch
 
     from crowdrl.training.checkpoint import CheckpointError
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     for entry, value, stem, said in (("net", float("nan"), "nan", "Q network's"),
                                      ("predictor", float("inf"), "inf", "crowd predictor's")):

@@ -117,7 +117,7 @@ def test_evaluate_acts_with_another_planner_without_retraining():
     tests/test_export_planner.py) and the ORCA baseline are refused naming the key."""
     from pathlib import Path
 
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     ck = Path(__file__).resolve().parents[1] / "pretrained" / "sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s0"
     common = dict(checkpoint=ck, episodes=4, batch=4, record_episode=None)

@@ -107,3 +107,27 @@ def test_animation_rejects_non_gif_path(tmp_path: Path) -> None:
 def test_shape_mismatch_names_the_field(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=field):
         make_traj(**{field: value})
+
+
+def test_a_trajectory_round_trips_through_its_file_and_a_run_folder_is_drawn_from_its_files(tmp_path: Path) -> None:
+    import json
+
+    from crowdrl.viz import render_run_folder
+
+    walls = (np.array([[-5.0, 5.0], [5.0, 5.0]]), np.array([[1.0, 1.0], [2.0, 1.0], [2.0, 2.0]]))
+    traj = make_traj(obstacles=walls)
+    back = Trajectory.load(traj.save(tmp_path / "test_case0.trajectory.json"))
+    for name in ("robot_positions", "robot_goal", "human_positions", "human_goals", "robot_headings"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(traj, name), err_msg=name)
+    assert back.outcome == "success" and back.time_step == DT and len(back.obstacles) == 2
+    np.testing.assert_array_equal(back.obstacles[1], walls[1])
+    (tmp_path / "scalars.jsonl").write_text(
+        "\n".join(json.dumps(r) for r in ({"kind": "train", "frames": 64, "train/success_rate": 0.5,
+                                            "train/collision_rate": 0.5},
+                                           {"kind": "val", "frames": 64, "val/success_rate": 0.25})) + "\n{cut")
+    written = render_run_folder(tmp_path, title="t")
+    assert sorted(p.name for p in written) == ["learning_curves.png", "test_case0.gif", "test_case0.png"]
+    assert all(p.stat().st_size > 0 for p in written)
+    (tmp_path / "bad.trajectory.json").write_text(json.dumps({"format": "other"}))
+    with pytest.raises(ValueError, match=r"bad\.trajectory\.json: not a crowdrl trajectory"):
+        Trajectory.load(tmp_path / "bad.trajectory.json")

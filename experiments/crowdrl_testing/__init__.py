@@ -344,7 +344,7 @@ def train_until_killed(run, folder, frame: int) -> None:
 
     Trainer.update = dies_at_frame
     try:
-        run_training(run, folder, render=False)
+        run_training(run, folder)
     except KilledRun:
         return
     finally:

@@ -100,6 +100,10 @@ def main(argv: list[str] | None = None) -> dict:
         summary = run_training(run, out, prepare=lambda: (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg)))
     except (CheckpointError, RunFolderRefused) as exc:
         exit_with_error("demo", f"cannot run in {out}: {exc}")
+    if run.logger.render:
+        from crowdrl.cli.train import render
+
+        render(run, out)
     train_s = time.perf_counter() - start
     agent = summary["test"]["metrics"]
 

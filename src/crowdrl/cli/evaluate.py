@@ -115,7 +115,7 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
     from crowdrl.evaluation.report import markdown_table, write_records
     from crowdrl.training import CheckpointError, ConfigError
     from crowdrl.training.validation import check_device, check_threads
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     try:
         c = read_settings(cfg, list(HydraConfig.get().overrides.task))

@@ -23,7 +23,7 @@ another budget, test-case count or code version is refused, and so is one reprod
 checkpoints) are kept in git, so a clone rebuilds the table and curves without training.
 
 This module launches the runs; the plan is :mod:`crowdrl.reproduction.plan`, the table
-:mod:`crowdrl.evaluation.reproduction`, the figures :mod:`crowdrl.viz.reproduction`.
+:mod:`crowdrl.reproduction.table`, the figures :mod:`crowdrl.viz.reproduction`.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def evaluate_into(folder: Path, *, checkpoint: Path | None = None, policy: str |
     """Test a checkpoint or a baseline on ``episodes`` cases (test seed 0) and write ``folder/eval.json``
     (in this process, while other runs train in theirs: the evaluation is short next to training)."""
     from crowdrl.evaluation.report import write_records
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     with EVAL_LOCK:
         record, _ = evaluate_spec(checkpoint=checkpoint, policy=policy, scenario=scenario, episodes=episodes)
@@ -136,9 +136,9 @@ def measure_gaps(plan: Plan) -> None:
     """With ``ceiling=``: each run's (and ORCA's) gap to the ceiling on each scenario that has a ceiling file,
     as ``gap.json`` beside its ``eval.json`` (the same cases evaluated again with the file: the per-case outcomes
     are not in the records); existing ones are kept."""
-    from crowdrl.evaluation.reproduction import gap_path
+    from crowdrl.reproduction.table import gap_path
     from crowdrl.evaluation.report import write_records
-    from crowdrl.training.pipeline import evaluate_spec
+    from crowdrl.agents import evaluate_spec
 
     for scenario in plan.scenarios:
         file = plan.ceiling_file(scenario)
@@ -212,7 +212,7 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
                 failures.append(f"{what} {which}: {exc!r}")
     if failures:
         raise RuntimeError("some runs failed (rerun to resume them):\n  " + "\n  ".join(failures))
-    from crowdrl.evaluation.reproduction import add_gaps, collect, launch_mode, recorded_wall, table_rows, write_table
+    from crowdrl.reproduction.table import add_gaps, collect, launch_mode, recorded_wall, table_rows, write_table
     from crowdrl.viz.reproduction import write_figures
 
     measure_gaps(plan)
@@ -221,8 +221,22 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
     # a call that trained nothing keeps the wall-clock of the call that did, and how it launched its runs
     # (recorded in table.json), not its own jobs=
     write_table(plan, add_gaps(plan, rows), *((wall_s, launch_mode(plan)) if pending else recorded_wall(plan)))
-    write_figures(plan, rows)
+    write_figures(plan, rows, case0_trajectories(plan))
     return {"rows": rows, "wall_s": wall_s, "trained": len(pending)}
+
+
+def case0_trajectories(plan):
+    """ORCA's and the first method's (first seed) recorded test case 0 of the first scenario, for the figures;
+    ``None`` where the run folder holds no checkpoint (a clone holds the runs' records, not checkpoints)."""
+    from crowdrl.agents import evaluate_spec
+
+    agent_dir = plan.run_dir(plan.methods[0], plan.seeds[0])
+    if not (agent_dir / "checkpoints" / "best.pt").exists():
+        print(f"no checkpoint in {agent_dir}: side_by_side.png and the GIF are left as they are", flush=True)
+        return None
+    _, orca = evaluate_spec(policy="orca", scenario=plan.scenarios[0], episodes=1, record_episode=0)
+    _, agent = evaluate_spec(checkpoint=agent_dir, scenario=plan.scenarios[0], episodes=1, record_episode=0)
+    return orca, agent
 
 
 def _register_schema() -> None:

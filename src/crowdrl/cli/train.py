@@ -92,10 +92,19 @@ def main(cfg: DictConfig) -> float:
     m = summary["test"]["metrics"]
     if complete_status is not None and status.read_bytes() == complete_status:  # run_training returned at once
         print(f"run folder {run_dir.resolve()} holds a completed run: nothing to train or test, nothing changed")
+    elif run.logger.render:
+        render(run, run_dir)
     print(f"run folder: {run_dir.resolve()}")
     print(f"test ({m['episodes']} cases): success {m['success_rate']:.3f}  collision {m['collision_rate']:.3f}  "
           f"nav time {seconds(m['navigation_time'])}  return {m['average_return']:.4f}")
     return float(m["success_rate"])
+
+
+def render(run, run_dir: Path) -> None:
+    """``learning_curves.png`` and test case 0's PNG and GIF, drawn from the run folder's files (``logger.render``)."""
+    from crowdrl.viz import render_run_folder
+
+    render_run_folder(run_dir, title=f"{run.encoder.name} + {run.exploration.name}, {run.env.scenario}, seed {run.seed}")
 
 
 def _start_run_folder(run_dir: Path, cfg: DictConfig) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -134,3 +135,47 @@ class Trajectory:
     def duration(self) -> float:
         """Episode length in seconds (T * time_step)."""
         return self.num_steps * self.time_step
+
+    def to_dict(self) -> dict:
+        """Plain lists and numbers (JSON); :meth:`from_dict` rebuilds the trajectory, its checks included."""
+        def plain(value):
+            return None if value is None else np.asarray(value).tolist()
+
+        return {"format": "crowdrl.trajectory", "version": 1,
+                "robot_positions": plain(self.robot_positions), "robot_goal": plain(self.robot_goal),
+                "robot_radius": self.robot_radius, "human_positions": plain(self.human_positions),
+                "human_goals": plain(self.human_goals), "human_radius": self.human_radius,
+                "time_step": self.time_step, "outcome": self.outcome, "robot_headings": plain(self.robot_headings),
+                "obstacles": None if self.obstacles is None else [plain(p) for p in self.obstacles]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Trajectory":
+        """The trajectory of :meth:`to_dict`'s output; ``ValueError`` for another format or a bad field."""
+        if not isinstance(data, dict) or data.get("format") != "crowdrl.trajectory":
+            raise ValueError("not a crowdrl trajectory (its 'format' is not 'crowdrl.trajectory')")
+        if data.get("version") != 1:
+            raise ValueError(f"trajectory version {data.get('version')!r} is not one this code reads (1)")
+        fields = {k: v for k, v in data.items() if k not in ("format", "version")}
+        if fields.get("obstacles") is not None:
+            fields["obstacles"] = tuple(fields["obstacles"])
+        try:
+            return cls(**fields)
+        except TypeError as exc:
+            raise ValueError(f"trajectory fields: {exc}") from None
+
+    def save(self, path: str | Path) -> Path:
+        """Write :meth:`to_dict` as JSON, atomically; :meth:`load` reads it back."""
+        from crowdrl.files import atomic_write_json
+
+        atomic_write_json(Path(path), self.to_dict())
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Trajectory":
+        """A trajectory :meth:`save` wrote; ``ValueError`` naming the file for anything else."""
+        import json
+
+        try:
+            return cls.from_dict(json.loads(Path(path).read_text(encoding="utf-8")))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: {exc}") from None

@@ -11,6 +11,7 @@ except ImportError as exc:
 from crowdrl.viz.curves import plot_learning_curves
 from crowdrl.viz.frame import render_frame
 from crowdrl.viz.results import ema, plot_intervals, plot_seed_curves
+from crowdrl.viz.run_folder import render_run_folder
 from crowdrl.viz.trajectory import (
     TIME_STAMP_GID,
     Trajectory,
@@ -20,4 +21,4 @@ from crowdrl.viz.trajectory import (
 )
 
 __all__ = ["Trajectory", "plot_trajectory", "plot_side_by_side", "animate_trajectory", "plot_learning_curves",
-           "render_frame", "ema", "plot_seed_curves", "plot_intervals", "TIME_STAMP_GID"]
+           "render_frame", "render_run_folder", "ema", "plot_seed_curves", "plot_intervals", "TIME_STAMP_GID"]

@@ -115,42 +115,4 @@ class ComparedPolicy(TensorDictModuleBase):
         return tensordict
 
 
-def compare_on_test_cases(checkpoint: Path | str, model: Path | str, *, scenario: str | None = None, seed: int = 0,
-                          episodes: int = 1000, batch: int = 1000, threads: int = 1) -> dict:
-    """The torch checkpoint (acting with the model's planner settings) and its exported ``model`` on test cases
-    ``0 .. episodes-1`` of ``scenario`` (the checkpoint's by default): both evaluation records (the model's
-    through ``evaluate.py``'s path, :func:`~crowdrl.training.pipeline.evaluate_spec`) and, along the torch
-    policy's own trajectories, the steps where the model's action is identical (``identical``), differs by
-    float rounding (``rounding``) or otherwise (``differ``), of ``steps`` acted in running episodes."""
-    from crowdrl.evaluation import evaluate
-    from crowdrl.evaluation.report import eval_record
-    from crowdrl.training.checkpoint import checkpoint_path, load_trained_network, load_trained_predictor
-    from crowdrl.training.factories import make_actor, make_env
-    from crowdrl.training.pipeline import act_with, evaluate_spec
-
-    exported = OnnxPolicy(model, threads=threads)
-    run, net, data = load_trained_network(checkpoint)
-    settings = {k: int(exported.model.metadata.get(f"crowdrl.planning_{k}", 0)) for k in ("depth", "width",
-                                                                                          "safety_horizon")}
-    if exported.model.plans and not run.planning.enabled:
-        raise ValueError(f"model: {exported.model.path} holds a planner, {checkpoint_path(checkpoint)} acts without "
-                         "one: not its export")
-    # the torch policy acts with the model's planner settings (a planning_* export; depth 0: greedy on Q)
-    run = act_with(run, settings if exported.model.plans else {"depth": 0}, prefix="model planning_")
-    scenario = scenario or run.env.scenario
-    env = make_env(run, split="test", num_envs=min(episodes, batch), seed=seed, scenario=scenario)
-    exported.check_env(env, scenario_key="scenario")
-    compared = ComparedPolicy(make_actor(run, env, net, load_trained_predictor(run, data, checkpoint_path(checkpoint))),
-                              exported)
-    metrics, _ = evaluate(env, compared, num_episodes=episodes)
-    torch_record = eval_record(metrics, scenario=scenario, seed=seed, policy=f"{run.encoder.name}+{run.exploration.name}"
-                               + ("+planning" if run.planning.enabled else ""))
-    onnx_record, _ = evaluate_spec(checkpoint=model, scenario=scenario, seed=seed, episodes=episodes, batch=batch,
-                                   record_episode=None)
-    c = compared
-    return {"scenario": scenario, "episodes": episodes, "seed": seed, "torch": torch_record, "onnx": onnx_record,
-            "steps": c.steps, "identical": c.identical, "rounding": c.rounding,
-            "differ": c.steps - c.identical - c.rounding}
-
-
-__all__ = ["ComparedPolicy", "OnnxPolicy", "compare_on_test_cases"]
+__all__ = ["ComparedPolicy", "OnnxPolicy"]
