@@ -69,7 +69,7 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
     import torch
 
     from crowdrl.training import factories
-    from crowdrl.training.config import validate
+    from crowdrl.training.validation import validate
     from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network
 

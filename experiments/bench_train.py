@@ -65,7 +65,7 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
 
-    from crowdrl.training.config import validate
+    from crowdrl.training.validation import validate
     from crowdrl.training.trainer import Trainer
 
     torch.manual_seed(0)

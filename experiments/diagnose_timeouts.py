@@ -31,7 +31,8 @@ STILL_SPEED = 0.1  # m/s
 def load(path: Path):
     """The run config, the Q network (eval mode) and the crowd predictor of a best.pt or last.pt."""
     from crowdrl.training.checkpoint import CheckpointError, load_checkpoint, load_trained_predictor
-    from crowdrl.training.config import stored_config, validate
+    from crowdrl.training.compat import stored_config
+    from crowdrl.training.validation import validate
     from crowdrl.training.loss import D3QNLoss
     from crowdrl.exploration import make_strategy
     from crowdrl.training.variants import make_network

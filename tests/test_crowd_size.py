@@ -15,7 +15,8 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import observe, step, step_reward
 from crowdrl.sim.kinematics import action_table
 from crowdrl.sim.scenarios import crowd_sizes, initial_states
-from crowdrl.training.config import ConfigError, crowd_range, validate
+from crowdrl.training.config import ConfigError, crowd_range
+from crowdrl.training.validation import validate
 
 torch.set_num_threads(1)
 VARIABLE = CrowdConfig(scenario="circle", num_humans=12, min_humans=3)
@@ -104,7 +105,7 @@ def test_absent_humans_are_zero_rows_of_the_observation():
 
 # ---------------------------------------------------------------- the env and its transforms
 def test_env_emits_the_mask_and_the_robot_centric_transform_keeps_it():
-    from crowdrl.training.config import validate as v
+    from crowdrl.training.validation import validate as v
     from crowdrl.training.factories import make_env, obs_keys
 
     run = v({"env": {"min_humans": 2, "max_humans": 6}, "train": {"num_envs": 8}})

@@ -25,7 +25,7 @@ def _compose(*overrides: str) -> dict:
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     register_resolvers()
@@ -65,7 +65,9 @@ def test_paper_presets_keep_their_budget_and_each_variants_schedule(preset):
 def test_a_stored_config_that_predates_a_changed_default_keeps_what_it_ran_with():
     from omegaconf import OmegaConf
 
-    from crowdrl.training.config import STORED_DEFAULTS, stored_config, validate
+    from crowdrl.training.compat import STORED_DEFAULTS, stored_config
+
+    from crowdrl.training.validation import validate
 
     saved = OmegaConf.to_container(OmegaConf.structured(RunConfig()))
     del saved["planning"]  # written before the planning key existed: trained without planning

@@ -219,7 +219,9 @@ def _compose(name: str, exploration: str) -> dict:
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
-    from crowdrl.training.config import RunConfig, register_resolvers
+    from crowdrl.training.config import RunConfig
+
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
     ConfigStore.instance().store(name="run_schema", node=RunConfig)

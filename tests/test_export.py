@@ -24,7 +24,8 @@ from crowdrl.envs.robot_centric import robot_centric  # noqa: E402
 from crowdrl.export import ENTITY_INPUTS, INPUTS, export_onnx  # noqa: E402
 from crowdrl.sim.kinematics import action_table  # noqa: E402
 from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
-from crowdrl.training.config import sees_obstacles, to_dict, validate  # noqa: E402
+from crowdrl.training.config import sees_obstacles, to_dict  # noqa: E402
+from crowdrl.training.validation import validate  # noqa: E402
 from crowdrl.training.factories import make_actor, make_env  # noqa: E402
 from crowdrl.training.pipeline import TEST_SEED  # noqa: E402
 
@@ -243,18 +244,14 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     assert not (tmp_path / "marker").exists()
 
 
-def test_export_traces_the_compiled_attention_kernel_as_plain_torch(exported, tmp_path):
+def test_export_traces_the_compiled_attention_kernel_as_plain_torch(exported, tmp_path, monkeypatch):
     """With the compiled pairwise kernels (the library's default outside tests), tracing calls the
     kernel's plain function: torch.jit cannot trace a torch.compile'd one."""
     from crowdrl.models import sgd3qn
 
     folder, reference = exported
-    previous = sgd3qn.PAIRWISE.backend
-    sgd3qn.set_pairwise_backend("compiled")
-    try:
-        info = export_onnx(folder, tmp_path / "policy.onnx", check=False)  # no torch forward: nothing compiles
-    finally:
-        sgd3qn.set_pairwise_backend(previous)
+    monkeypatch.setattr(sgd3qn, "PAIRWISE", sgd3qn.PairwiseKernels("compiled"))
+    info = export_onnx(folder, tmp_path / "policy.onnx", check=False)  # no torch forward: nothing compiles
     feeds = load_example().observation(np.array([0.0, -4.0, 0.0, 0.5, 0.3, 0.0, 4.0, 1.0, 1.5]),
                                        np.array([[0.3, -2.5, 0.0, -0.8, 0.3], [1.0, 1.0, 0.0, 0.0, 0.3]]))
     got, want = (onnxruntime.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(["q_values"], feeds)[0]

@@ -25,7 +25,8 @@ from crowdrl.agents import compare_on_test_cases  # noqa: E402
 from crowdrl.onnx_policy import OnnxPolicy  # noqa: E402
 from crowdrl.training import CheckpointError  # noqa: E402
 from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
-from crowdrl.training.config import to_dict, validate  # noqa: E402
+from crowdrl.training.config import to_dict  # noqa: E402
+from crowdrl.training.validation import validate  # noqa: E402
 from crowdrl.training.factories import make_predictor_of  # noqa: E402
 from crowdrl.agents import evaluate_spec  # noqa: E402
 

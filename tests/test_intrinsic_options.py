@@ -14,7 +14,8 @@ from torch import nn
 from crowdrl.exploration import ICM, RE3, IntrinsicRewardTransform
 from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer, RunningMeanStd
 from crowdrl.exploration.schedule import exp_schedule, linear_schedule, make_schedule
-from crowdrl.training.config import ConfigError, validate
+from crowdrl.training.config import ConfigError
+from crowdrl.training.validation import validate
 
 OBS_DIM, NUM_ACTIONS = 4, 3
 
@@ -262,7 +263,9 @@ def _composed_exploration(group: str):
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
-    from crowdrl.training.config import RunConfig, register_resolvers
+    from crowdrl.training.config import RunConfig
+
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
     ConfigStore.instance().store(name="run_schema", node=RunConfig)

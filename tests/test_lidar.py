@@ -255,7 +255,8 @@ def test_the_hydra_env_group_takes_the_lidar_keys():
     from hydra.core.config_store import ConfigStore
 
     from crowdrl.training import validate
-    from crowdrl.training.config import RunConfig, register_resolvers
+    from crowdrl.training.config import RunConfig
+    from crowdrl.training.resolvers import register_resolvers
 
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     register_resolvers()

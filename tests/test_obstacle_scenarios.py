@@ -421,7 +421,9 @@ def _compose(overrides):
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
-    from crowdrl.training.config import RunConfig, register_resolvers
+    from crowdrl.training.config import RunConfig
+
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
@@ -431,7 +433,7 @@ def _compose(overrides):
 
 @pytest.mark.parametrize("scenario", OBSTACLE_SCENARIOS)
 def test_hydra_env_groups_set_the_geometry(scenario):
-    from crowdrl.training.config import validate
+    from crowdrl.training.validation import validate
     from crowdrl.training.factories import crowd_config
 
     key = {"corridor": "corridor_width=3.0", "doorway": "doorway_gap=1.8", "room": "room_pillars=2"}[scenario]
@@ -442,7 +444,8 @@ def test_hydra_env_groups_set_the_geometry(scenario):
 
 
 def test_hydra_bad_geometry_is_named():
-    from crowdrl.training.config import ConfigError, validate
+    from crowdrl.training.config import ConfigError
+    from crowdrl.training.validation import validate
 
     with pytest.raises(ConfigError, match="env.doorway_gap"):
         validate(_compose(["env=doorway", "env.doorway_gap=0.5", "logger=csv"]), resources=False)

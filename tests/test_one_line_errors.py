@@ -192,7 +192,8 @@ def test_a_run_folder_whose_config_holds_an_unknown_key_or_target_is_refused_nam
 
 
 def test_logger_online_without_wandb_credentials_is_refused_at_start(monkeypatch, tmp_path):
-    from crowdrl.training.config import ConfigError, RunConfig, validate
+    from crowdrl.training.config import ConfigError, RunConfig
+    from crowdrl.training.validation import validate
 
     monkeypatch.delenv("WANDB_MODE", raising=False)
     monkeypatch.delenv("WANDB_API_KEY", raising=False)

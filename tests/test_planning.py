@@ -251,7 +251,8 @@ def test_bad_planning_values_are_refused_naming_the_key(key, value, message):
 
 def test_planning_off_leaves_the_fingerprint_of_a_run_without_it():
     from crowdrl.training.checkpoint import config_fingerprint
-    from crowdrl.training.config import stored_config, to_dict
+    from crowdrl.training.compat import stored_config
+    from crowdrl.training.config import to_dict
 
     assert validate({}).planning.enabled is True  # the default, as upstream (one set of defaults)
     run = validate({"planning": {"enabled": False}})

@@ -29,7 +29,8 @@ def test_the_repo_ships_pretrained_agents_with_their_records():
 @pytest.mark.parametrize("agent", AGENTS, ids=[a.name for a in AGENTS])
 def test_each_agent_loads_with_weights_only_and_matches_its_config_and_record(agent):
     from crowdrl.training.compat import stored_config
-    from crowdrl.training.config import to_dict, validate
+    from crowdrl.training.config import to_dict
+    from crowdrl.training.validation import validate
     from crowdrl.training.pipeline import load_trained_network
 
     run, net, data = load_trained_network(agent)  # weights_only=True, fingerprint, finite weights

@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from crowdrl.evaluation.report import read_eval_record
-from crowdrl.training.config import ConfigError, RunConfig, check_device, validate
+from crowdrl.training.config import ConfigError, RunConfig
+from crowdrl.training.validation import check_device, validate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -132,7 +133,8 @@ def test_resume_reads_the_folders_own_config_and_refuses_conflicting_overrides(s
 
 
 def test_resume_overrides_are_compared_with_schema_defaults_for_keys_a_folder_predates():
-    from crowdrl.training.config import RunConfig, resume_conflicts
+    from crowdrl.training.config import RunConfig
+    from crowdrl.training.compat import resume_conflicts
     from omegaconf import OmegaConf
 
     saved = OmegaConf.to_container(OmegaConf.structured(RunConfig(seed=1)))
@@ -182,7 +184,7 @@ def test_another_runs_best_checkpoint_is_refused(smoke_runs, tmp_path):
     import shutil
 
     from crowdrl.training import CheckpointError, evaluate_best
-    from crowdrl.training.config import validate
+    from crowdrl.training.validation import validate
     from omegaconf import OmegaConf
 
     run = tmp_path / "run"
@@ -236,7 +238,7 @@ def test_run_folder_names_carry_a_random_suffix():
     """Two runs started in the same second get different folders (`${crowdrl_uid:}` in conf/)."""
     from omegaconf import OmegaConf
 
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
     first = OmegaConf.create({"dir": "runs/x-${crowdrl_uid:}", "again": "${crowdrl_uid:}"})

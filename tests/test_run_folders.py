@@ -18,7 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from crowdrl.training.config import ConfigError, RunConfig, validate
+from crowdrl.training.config import ConfigError, RunConfig
+
+from crowdrl.training.validation import validate
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = [sys.executable, str(ROOT / "experiments" / "train.py")]
@@ -168,7 +170,7 @@ def test_default_folders_of_every_entry_point_carry_a_unique_part():
     from hydra import compose, initialize_config_dir
 
     import crowdrl.cli.evaluate  # noqa: F401  registers evaluate's typed schema (evaluate_schema)
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     register_resolvers()
     dirs = []
@@ -211,7 +213,7 @@ def _compose(*overrides: str):
     from hydra import compose, initialize_config_dir
     from hydra.core.config_store import ConfigStore
 
-    from crowdrl.training.config import register_resolvers
+    from crowdrl.training.resolvers import register_resolvers
 
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
     register_resolvers()
@@ -277,7 +279,7 @@ def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
     """The estimate behind train.buffer_size's bound, against a real buffer's stored transition (the keys the
     trainer stores: the networks', the predictor's, the counterfactual experience's)."""
     from crowdrl.models import make_q_network
-    from crowdrl.training.config import transition_bytes
+    from crowdrl.training.resources import transition_bytes
     from crowdrl.training.factories import crowd_config, make_buffer, make_env, make_update_part, obs_keys, stored_keys
 
     run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))

@@ -335,7 +335,8 @@ def read_exported(path: Path | str) -> ExportedModel:
         raise ValueError(f"checkpoint: {path}: reading an ONNX model needs onnx and onnxruntime: "
                          "pip install 'crowdrl[export]'") from None
     from crowdrl.training.compat import stored_config
-    from crowdrl.training.config import ConfigError, validate
+    from crowdrl.training.config import ConfigError
+    from crowdrl.training.validation import validate
 
     path = Path(path)
     if not path.is_file():

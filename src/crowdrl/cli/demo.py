@@ -40,7 +40,7 @@ def compose_run(overrides: list[str]):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     if cfg.preset == "demo" and not any(o.lstrip("+~").startswith("train.compile_acting=") for o in overrides):
-        cfg.train.compile_acting = True  # the demo's speed (docs/benchmarks.md), as before one set of defaults
+        cfg.train.compile_acting = True  # the demo's speed (docs/benchmarks.md), unless the command line sets it
     return cfg, validate(cfg)
 
 

@@ -109,12 +109,6 @@ class PairwiseKernels:
 PAIRWISE = PairwiseKernels()
 
 
-def set_pairwise_backend(backend: str) -> None:
-    """Choose ``"compiled"`` (default) or ``"eager"`` pairwise attention kernels for every encoder."""
-    global PAIRWISE
-    PAIRWISE = PairwiseKernels(backend)
-
-
 class _PairwiseScore(torch.autograd.Function):
     """``s[..., r, c] = w . relu(rows[..., r, :] + cols[..., c, :] + bias)``.
 

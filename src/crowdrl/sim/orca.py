@@ -730,7 +730,7 @@ def orca_velocities(
             vertices for a solid polygon, 2 vertices for a wall segment; see
             :mod:`crowdrl.sim.obstacles`), or the :class:`~crowdrl.sim.obstacles.ObstacleEdges` that
             :func:`~crowdrl.sim.obstacles.process_obstacles` made of them (process static obstacles
-            once, not on every step). ``None``: open space, exactly as before obstacles existed.
+            once, not on every step). ``None``: open space.
         obstacle_mask: ``[B, P, V]`` bool with polygon tensors: polygon ``(b, p)`` has the vertices
             ``obstacle_mask[b, p]`` marks, valid ones first; all-false is no polygon. ``None``: all valid.
 

@@ -32,8 +32,8 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, truncated, of another format, or from another config."""
 
 
-# Keys added after runs were recorded, at the value that leaves the problem as it was: left out of
-# the fingerprint at that value, so older run folders keep theirs.
+# Keys at the value that leaves the problem unchanged (no variable crowd, blind ORCA humans, no mixed shares):
+# left out of the fingerprint at that value, so a stored config without them keeps its fingerprint.
 _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": CrowdConfig.human_model,
                     "robot_visible": CrowdConfig.robot_visible,
                     **{k: getattr(CrowdConfig, k) for k in (*SOCIAL_FORCE_KEYS, *SHARE_KEYS)}}}
@@ -78,18 +78,18 @@ def fingerprinted(config: dict) -> dict[str, Any]:
         keep["env"] = {k: v for k, v in keep["env"].items() if k not in drop}
     train = dict(config.get("train", {}))
     if isinstance(train.get("counterfactual"), dict) and train["counterfactual"].get("mode", "off") == "off":
-        train.pop("counterfactual")  # off: the fingerprint of a run recorded before the key
+        train.pop("counterfactual")  # off: hashed as a config without the key
     if isinstance(train.get("demonstrations"), dict) and train["demonstrations"].get("cases", 0) == 0:
-        train.pop("demonstrations")  # off: the fingerprint of a run recorded before the key
-    for key, off in _TRAIN_NEUTRAL.items():  # the stability levers at their defaults: as before the keys
+        train.pop("demonstrations")  # off: hashed as a config without the key
+    for key, off in _TRAIN_NEUTRAL.items():  # a stability lever off: hashed as a config without its key
         if key in train and train[key] == off:
             train.pop(key)
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
               "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
         train.pop(k, None)
     keep["train"] = train
-    if config.get("planning", {}).get("enabled"):  # planning off: the fingerprint of a run without the key
-        # the safety check off: as before the key
+    if config.get("planning", {}).get("enabled"):  # planning off: hashed as a config without the section
+        # the safety check off: hashed as a planner without the key
         keep["planning"] = {k: v for k, v in config["planning"].items() if not (k == "safety_horizon" and v == 0)}
     return keep
 

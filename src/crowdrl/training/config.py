@@ -22,9 +22,7 @@ config that predates a key whose default has changed keeps the value it ran with
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from dataclasses import dataclass, field
-from typing import Any
 
 from crowdrl.sim.config import OBSTACLE_SCENARIOS, CrowdConfig
 
@@ -49,7 +47,9 @@ class EnvConfig:
     num_humans: int = 10
     min_humans: int | None = None
     max_humans: int | None = None
-    orca_backend: str = "eager"  # "compiled": the torch.compile ORCA (same numbers; compiles once per shape)
+    # the humans' step backend, for ORCA and social-force humans alike: "compiled" runs it through torch.compile
+    # (same numbers; compiles once per shape), "eager" as plain torch
+    orca_backend: str = "eager"
     # obstacle geometry of corridor / doorway / room (CrowdConfig's keys and defaults; conf/env/*.yaml)
     corridor_width: float = CrowdConfig.corridor_width
     corridor_length: float = CrowdConfig.corridor_length
@@ -136,7 +136,7 @@ class CounterfactualConfig:
     ``second_update``: a second double-DQN step on them after each real one (SG-D3QN's trainer);
     ``merged``: one step on the real and counterfactual terms, the latter weighted ``weight``."""
 
-    mode: str = "second_update"  # the recommended learner's (conf/learner/); "off" before issue 50 (COUNTERFACTUAL_OFF)
+    mode: str = "second_update"  # the recommended learner's (conf/learner/); a stored config without the key: COUNTERFACTUAL_OFF
     actions: str = "topk"
     k: int = 5  # alternatives per sampled state (actions=all: every action, k is not read)
     weight: float = 0.5  # merged: loss = (1 - weight) * real + weight * counterfactual
@@ -200,8 +200,8 @@ class TrainConfig:
 # train's stability levers: read by the fingerprint (left out when off, so folders made before them keep
 # theirs) and given to every run of a reproduction
 LEVER_KEYS = ("target_tau", "huber_delta", "grad_clip_norm", "lr_end", "q_layer_norm")
-# each lever off (the paper's learner; the defaults before issue 50 made target_tau 0.005): what a stored
-# config that predates a lever ran with
+# each lever off (the paper's learner; the default learner sets target_tau 0.005): what a stored config
+# without a lever's key ran with
 LEVERS_OFF = {"target_tau": 1.0, "huber_delta": None, "grad_clip_norm": None, "lr_end": None, "q_layer_norm": False}
 
 
@@ -292,16 +292,3 @@ def crowd_range(env: EnvConfig) -> tuple[int, int]:
 def to_dict(run: RunConfig) -> dict:
     """Plain nested dict of a run config (for logging and checkpoints)."""
     return dataclasses.asdict(run)
-
-
-# Names that live in their own modules, still importable from here (tests, experiments and docs use them).
-MOVED = {"validate": "validation", "check_device": "validation", "STORED_DEFAULTS": "compat",
-         "stored_config": "compat", "resume_conflicts": "compat", "transition_bytes": "resources",
-         "register_resolvers": "resolvers"}
-
-
-def __getattr__(name: str) -> Any:
-    """A name of :data:`MOVED`, from its module (imported on first use: those modules import this one)."""
-    if name in MOVED:
-        return getattr(importlib.import_module(f"crowdrl.training.{MOVED[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

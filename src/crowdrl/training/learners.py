@@ -2,7 +2,7 @@
 
 ``recommended`` (the default): counterfactual experience and Polyak target updates; ``paper``: upstream
 SG-D3QN's top-5 second update with hard target copies (``preset=paper`` selects it); ``plain``: neither,
-the default before issue 50. ``train.py learner=<name>`` picks one; its keys can then be set one by one.
+what a stored config without the keys ran with. ``train.py learner=<name>`` picks one; its keys can then be set one by one.
 
 >>> learner_of_preset("paper"), learner_of_preset("demo")
 ('paper', 'recommended')

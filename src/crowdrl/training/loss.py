@@ -13,7 +13,9 @@ and where each is computed:
   replay buffer (``training/nstep.py``; the window stops at the first step that ends an episode, and
   ``terminated`` is that step's);
 * ``+ β·r_in(s_t, a_t, s_{t+1})``: ICM's or RE3's bonus, added when the batch is sampled, with the
-  current networks and the β schedule (``exploration/intrinsic.py``, ``IntrinsicRewardTransform``);
+  current networks and the β schedule (``exploration/intrinsic.py``, ``IntrinsicRewardTransform``); with
+  ``exploration.terminal_value`` a terminal transition also gets ``β γ^m mean(r_in) / (1 - γ)``, the bonus
+  forgone by ending the episode (so ``(1 - terminated)`` below never makes ending cost the bonus);
 * counterfactual transitions (``training/counterfactual.py``) are one-step: ``r`` is the simulator's
   reward of the alternative action (plus the bonus), ``m = 1``, ``terminated`` its collision or goal;
   with ``mode="merged"`` the batch carries ``loss_weight`` and the loss is ``Σ weight·(Q(s, a) - y)²``;
