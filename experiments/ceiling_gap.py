@@ -34,7 +34,8 @@ from crowdrl.sim.kinematics import action_table
 from crowdrl.sim.oracle import SOLVED
 from crowdrl.tables import markdown_table
 from crowdrl.training.checkpoint import checkpoint_path, load_trained_network, load_trained_predictor
-from crowdrl.training.factories import crowd_config, make_actor, make_env
+from crowdrl.training.config import crowd_config
+from crowdrl.training.factories import make_actor, make_env
 
 SLOW = 0.2  # m/s: a step at or below this speed counts as hesitation
 

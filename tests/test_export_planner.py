@@ -221,7 +221,7 @@ def test_the_example_runs_the_exported_planner_without_torch(planner_model, tmp_
 
     from crowdrl.policies import OnlinePlanner
     from crowdrl.training.checkpoint import load_trained_network, load_trained_predictor
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
 
     run, net, data = load_trained_network(folder)
     planner = OnlinePlanner(net, load_trained_predictor(run, data, folder), crowd_config(run), gamma=run.train.gamma,

@@ -150,7 +150,7 @@ def test_the_run_config_takes_the_keys_and_a_run_at_their_defaults_keeps_its_fin
     from crowdrl.training import validate
     from crowdrl.training.checkpoint import config_fingerprint
     from crowdrl.training.config import ConfigError, to_dict
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
 
     # the learner the keys were recorded with (visible robots need it: no counterfactual)
     plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}

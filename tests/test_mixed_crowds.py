@@ -227,7 +227,7 @@ def test_the_run_config_takes_the_shares_and_the_default_fingerprint_is_unchange
     from crowdrl.training import validate
     from crowdrl.training.checkpoint import config_fingerprint
     from crowdrl.training.config import ConfigError, to_dict
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
 
     # the learner the keys were recorded with (visible robots need it: no counterfactual)
     plain = {"train": {"counterfactual": {"mode": "off"}, "target_tau": 1.0}}

@@ -434,7 +434,7 @@ def _compose(overrides):
 @pytest.mark.parametrize("scenario", OBSTACLE_SCENARIOS)
 def test_hydra_env_groups_set_the_geometry(scenario):
     from crowdrl.training.validation import validate
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
 
     key = {"corridor": "corridor_width=3.0", "doorway": "doorway_gap=1.8", "room": "room_pillars=2"}[scenario]
     run = validate(_compose([f"env={scenario}", f"env.{key}", "logger=csv"]), resources=False)

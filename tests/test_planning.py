@@ -275,7 +275,8 @@ EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "pre
 def test_the_td_target_is_the_plain_double_dqn_target():
     """The planner selects actions only: the loss of a sampled batch does not change when the
     predictor (hence every plan) changes."""
-    from crowdrl.training.factories import crowd_config, obs_keys, stored_keys
+    from crowdrl.training.config import crowd_config
+    from crowdrl.training.factories import obs_keys, stored_keys
     from crowdrl.training.trainer import Trainer
 
     trainer = Trainer(validate(EXACT), Path("/nonexistent-never-written"))

@@ -348,7 +348,7 @@ def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp
 
     from crowdrl.evaluation.ceiling import compute_ceiling, write_ceiling
     from crowdrl.training.checkpoint import load_trained_network
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
 
     out = tmp_path / "results"
     shutil.copytree(reproduced, out)  # the module's other tests keep theirs as it was

@@ -280,7 +280,8 @@ def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
     trainer stores: the networks', the predictor's, the counterfactual experience's)."""
     from crowdrl.models import make_q_network
     from crowdrl.training.resources import transition_bytes
-    from crowdrl.training.factories import crowd_config, make_buffer, make_env, make_update_part, obs_keys, stored_keys
+    from crowdrl.training.config import crowd_config
+    from crowdrl.training.factories import make_buffer, make_env, make_update_part, obs_keys, stored_keys
 
     run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))
     keys = obs_keys(crowd_config(run))

@@ -18,7 +18,8 @@ from crowdrl.evaluation.report import eval_record
 from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, load_trained_network, load_trained_predictor
 from crowdrl.training.config import EVAL_BATCH, RunConfig
-from crowdrl.training.factories import crowd_config, make_actor, make_env
+from crowdrl.training.config import crowd_config
+from crowdrl.training.factories import make_actor, make_env
 from crowdrl.training.pipeline import TEST_SEED, act_with, evaluate_network, policy_name
 
 BASELINES = ("orca",)

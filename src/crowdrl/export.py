@@ -60,7 +60,7 @@ from crowdrl.training.checkpoint import (CheckpointError, checkpoint_path, confi
                                         load_trained_network, load_trained_predictor)
 from crowdrl.envs.robot_centric import ENTITY_DIM
 from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
-from crowdrl.training.factories import crowd_config
+from crowdrl.training.config import crowd_config
 
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
 ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles

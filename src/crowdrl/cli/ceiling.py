@@ -62,7 +62,7 @@ def main(cfg: DictConfig) -> dict:
     from crowdrl.schema import SchemaError, read_typed
     from crowdrl.sim.oracle import check_searchable
     from crowdrl.training.config import RunConfig
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
     from crowdrl.training.validation import check_threads
 
     try:

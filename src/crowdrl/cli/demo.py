@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from crowdrl.evaluation import evaluate_orca
     from crowdrl.files import atomic_write_json
-    from crowdrl.training.factories import crowd_config
+    from crowdrl.training.config import crowd_config
     from crowdrl.training import run_training
 
     from crowdrl.training.run_folder import RunFolderRefused

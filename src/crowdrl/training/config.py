@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from crowdrl.sim.config import OBSTACLE_SCENARIOS, CrowdConfig
+from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, CrowdConfig
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EVAL_BATCH = 1000  # episodes stepped at once by the final test (and experiments/evaluate.py's eval.batch)
@@ -287,6 +287,18 @@ def crowd_range(env: EnvConfig) -> tuple[int, int]:
     low = env.num_humans if env.min_humans is None else env.min_humans
     high = env.num_humans if env.max_humans is None else env.max_humans
     return low, high
+
+
+def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
+                 robot_kinematics: str = "unicycle") -> CrowdConfig:
+    """The simulator constants of ``run``, built from its ``env`` section here only (``scenario``/``num_humans``
+    override the run's; a given ``num_humans`` is a fixed crowd even when the run's varies)."""
+    low, high = crowd_range(run.env)
+    if num_humans is not None:
+        low = high = num_humans
+    return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=high, min_humans=low if low < high else None,
+                       orca_backend=run.env.orca_backend, robot_kinematics=robot_kinematics,
+                       **{k: getattr(run.env, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
 
 
 def to_dict(run: RunConfig) -> dict:

@@ -27,15 +27,15 @@ from crowdrl.models import make_q_actor
 from crowdrl.compile import CompiledModule
 from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
-from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, CrowdConfig
-from crowdrl.training.config import RunConfig, crowd_range, sees_obstacles
+from crowdrl.sim.config import CrowdConfig
+from crowdrl.training.config import RunConfig, crowd_config, sees_obstacles
 from crowdrl.training.learner import D3QNLearner
 from crowdrl.training.loss import D3QNLoss
 from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.parts import ReplayOnly, UpdatePart
 from crowdrl.training.predictor_learner import PredictorLearner
-from crowdrl.training.variants import ONE_STEP_KEY
+from crowdrl.training.variants import successor_key
 
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
@@ -66,18 +66,6 @@ def stored_keys(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS) -> list:
     if run.planning.enabled and run.planning.predictor == "learned":
         out += [k for k in PREDICTOR_KEYS if k not in out]
     return out
-
-
-def crowd_config(run: RunConfig, *, scenario: str | None = None, num_humans: int | None = None,
-                 robot_kinematics: str = "unicycle") -> CrowdConfig:
-    """The simulator constants of ``run`` (``scenario``/``num_humans`` override the run's; a given
-    ``num_humans`` is a fixed crowd even when the run's varies)."""
-    low, high = crowd_range(run.env)
-    if num_humans is not None:
-        low = high = num_humans
-    return CrowdConfig(scenario=scenario or run.env.scenario, num_humans=high, min_humans=low if low < high else None,
-                       orca_backend=run.env.orca_backend, robot_kinematics=robot_kinematics,
-                       **{k: getattr(run.env, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
 
 
 def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = None, seed: int | None = None,
@@ -157,8 +145,8 @@ def make_buffer(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS, strategy: Expl
     what the exploration ``strategy`` does to a sampled batch (ICM/RE3: the intrinsic bonus), its
     transform built from ``context`` (:func:`~crowdrl.training.variants.replay_context`)."""
     t = run.train
-    reads_successor = strategy is not None and strategy.reads_successor and t.n_step > 1
-    transform: Transform = NStepReturn(t.n_step, t.gamma, keys, one_step_key=ONE_STEP_KEY if reads_successor else None)
+    transform: Transform = NStepReturn(t.n_step, t.gamma, keys,
+                                       one_step_key=successor_key(run, strategy) if strategy is not None else None)
     extra = strategy.replay_transform(context) if strategy is not None else None
     if extra is not None:
         transform = Compose(transform, extra)
@@ -180,18 +168,18 @@ def make_learners(run: RunConfig, predictor: torch.nn.Module | None, keys: tuple
 
 
 def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
-                     reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None) -> UpdatePart:
+                     reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None,
+                     one_step_key: str | None = None) -> UpdatePart:
     """The gradient steps of one update (:mod:`crowdrl.training.parts`): the sampled batch alone, or with
     ``train.counterfactual.mode`` its counterfactual transitions too (``reward_bonus``, the exploration
-    strategy's, added to them; with n-step returns it reads their successor under ``ONE_STEP_KEY``, as
-    :func:`make_buffer` stores it)."""
+    strategy's, added to them; it reads their successor under ``one_step_key`` where :func:`make_buffer` stores
+    it, :func:`~crowdrl.training.variants.successor_key`)."""
     c = run.train.counterfactual
     if c.mode == "off":
         return ReplayOnly()
-    one_step = ONE_STEP_KEY if reward_bonus is not None and run.train.n_step > 1 else None
     return CounterfactualExperience(crowd, net, keys, mode=c.mode, actions=c.actions, k=c.k, weight=c.weight,
                                     entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1),
-                                    reward_bonus=reward_bonus, one_step_key=one_step)
+                                    reward_bonus=reward_bonus, one_step_key=one_step_key)
 
 
 def make_learner(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
@@ -204,7 +192,7 @@ def make_learner(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], cr
     loss = make_loss(run, net, keys)
     optimizer = make_optimizer(run, net)
     learners = make_learners(run, predictor, keys, strategy)
-    part = make_update_part(run, net, keys, crowd, strategy.reward_bonus())
+    part = make_update_part(run, net, keys, crowd, strategy.reward_bonus(), successor_key(run, strategy))
     return D3QNLearner(loss, optimizer, part, learners, before_update=strategy.before_update,
                        grad_clip_norm=t.grad_clip_norm, target_tau=t.target_tau,
                        updates_per_copy=max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9))),
@@ -239,6 +227,6 @@ def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Co
                      device=run.device, auto_register_policy_transforms=False)
 
 
-__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict", "crowd_config",
+__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict",
            "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_learner", "make_learners",
            "make_loss", "make_optimizer", "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]

@@ -3,9 +3,8 @@ estimated from the config, against the memory available now."""
 
 from __future__ import annotations
 
-from crowdrl.sim.config import OBSTACLE_KEYS, CrowdConfig
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
-from crowdrl.training.config import (EVAL_BATCH, ConfigError, RunConfig, counterfactual_on, crowd_range,
+from crowdrl.training.config import (EVAL_BATCH, ConfigError, RunConfig, counterfactual_on, crowd_config, crowd_range,
                                      sees_obstacles)
 
 # Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),
@@ -50,7 +49,7 @@ def transition_bytes(run: RunConfig) -> int:
     if (run.planning.enabled and run.planning.predictor == "learned") or counterfactual_on(run):
         out += 4 * (ROBOT_OBS_DIM + 2 * HUMAN_OBS_DIM * high)
     if counterfactual_on(run) and sees_obstacles(run):  # the episode's map: P polygons of V vertices and their mask
-        P, V = CrowdConfig(scenario=run.env.scenario, **{k: getattr(run.env, k) for k in OBSTACLE_KEYS}).obstacles_shape
+        P, V = crowd_config(run).obstacles_shape
         out += P * V * (2 * 4 + 1)
     return out
 

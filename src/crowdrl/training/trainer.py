@@ -40,7 +40,7 @@ from crowdrl.training.factories import (buffer_state_dict, make_actor, make_buff
                                         make_exploration, make_learner, make_predictor_of, obs_keys, stored_keys)
 from crowdrl.training.learner import NonFiniteError
 from crowdrl.training.scalars import ScalarLog, WandbMirror, progress_bar
-from crowdrl.training.variants import make_network, replay_context
+from crowdrl.training.variants import make_network, replay_context, successor_key
 
 
 _log = logging.getLogger(__name__)
@@ -105,7 +105,8 @@ class Trainer:
         self.counters = Counters()
         # the strategy's replay transform (ICM / RE3: their own seeds, the global RNG is untouched)
         self.buffer = make_buffer(run, self.obs_keys, self.strategy,
-                                  replay_context(run, list(self.obs_keys), num_actions, lambda: self.counters.frames))
+                                  replay_context(run, list(self.obs_keys), num_actions, lambda: self.counters.frames,
+                                                 successor_key(run, self.strategy)))
         # the Q network's update: loss, optimiser, the update part (counterfactual experience), the auxiliary
         # learners (the strategy's, the crowd predictor), the target rule and the learning-rate schedule
         self.learner = make_learner(run, self.net, self.obs_keys, self.crowd_cfg, self.strategy, self.predictor)

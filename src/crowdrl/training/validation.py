@@ -14,12 +14,12 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.schema import SchemaError, check_bools
-from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, MAX_HUMANS, OBSTACLE_KEYS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
+from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.rng import MAX_SEED
 from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, INTRINSIC,
                                      INTRINSIC_OPTIONS, LOGGERS, WANDB_MODES, ConfigError, ExplorationConfig, RunConfig,
-                                     crowd_range)
+                                     crowd_config, crowd_range)
 from crowdrl.training.resources import check_resources
 
 
@@ -73,8 +73,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
     try:  # the obstacle geometry, the lidar, the humans' model: CrowdConfig's checks, whose messages start with the key
         # the largest crowd too: an obstacle scenario refuses one its geometry cannot spawn reliably
-        CrowdConfig(scenario=e.scenario, num_humans=high,
-                    **{k: getattr(e, k) for k in (*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)})
+        crowd_config(run)
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
@@ -190,10 +189,7 @@ def check_counterfactual(run: RunConfig) -> None:
     check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
           f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
     check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
-    low, high = crowd_range(run.env)
-    humans = CrowdConfig(num_humans=high, min_humans=low if low < high else None, human_model=run.env.human_model,
-                         robot_visible=run.env.robot_visible, social_force_share=run.env.social_force_share,
-                         linear_share=run.env.linear_share)
+    humans = crowd_config(run)
     if c.mode != "off" and humans.humans_react_to_robot:
         who = " and ".join(m for m in humans.human_models_present if m != "linear")
         raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
@@ -220,11 +216,7 @@ def check_demonstrations(run: RunConfig) -> None:
           f"must be a non-empty list of integers in 1..{MAX_DEMO_WIDTH}, got {widths!r}")
     check(widths == sorted(set(widths)), "train.demonstrations.widths", f"must increase, got {widths!r}")
     if d.cases > 0:
-        low, high = crowd_range(run.env)
-        humans = CrowdConfig(num_humans=high, min_humans=low if low < high else None,
-                             human_model=run.env.human_model, robot_visible=run.env.robot_visible,
-                             social_force_share=run.env.social_force_share, linear_share=run.env.linear_share)
-        check(not humans.humans_react_to_robot, "train.demonstrations.cases",
+        check(not crowd_config(run).humans_react_to_robot, "train.demonstrations.cases",
               "the oracle solves a case only when its crowd is known in advance, i.e. the humans ignore the robot; "
               "set env.robot_visible=false or train.demonstrations.cases=0")
 

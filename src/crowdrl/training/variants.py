@@ -45,15 +45,23 @@ def make_network(run: RunConfig, num_actions: int = 81, *, strategy: Exploration
     return strategy.modify_network(net)
 
 
-def replay_context(run: RunConfig, obs_keys: list, num_actions: int, frames: Callable[[], int]) -> ReplayContext:
+def successor_key(run: RunConfig, strategy: ExplorationStrategy) -> str | None:
+    """Where a sampled transition keeps ``s_{t+1}`` for the strategy's bonus, decided here only: ``ONE_STEP_KEY``
+    when the strategy reads the successor and n-step returns (n > 1) move ``("next", ·)`` to ``s_{t+n}``;
+    ``None`` when nothing reads it or ``("next", ·)`` is ``s_{t+1}`` itself (the buffer then keeps no copy)."""
+    return ONE_STEP_KEY if strategy.reads_successor and run.train.n_step > 1 else None
+
+
+def replay_context(run: RunConfig, obs_keys: list, num_actions: int, frames: Callable[[], int],
+                   successor: str | None = None) -> ReplayContext:
     """What an exploration strategy's replay transform reads from ``run``: the one-step successor's
-    keys (``ONE_STEP_KEY`` with n-step returns), a fresh encoder of the run's architecture, a seed
-    derived from the run seed, and ``frames()``, the frame count a scheduled β reads."""
-    next_keys = [("next", k) for k in obs_keys] if run.train.n_step == 1 else [(ONE_STEP_KEY, k) for k in obs_keys]
+    keys (under ``successor``, :func:`successor_key`; ``None``: ``("next", ·)``), a fresh encoder of the run's
+    architecture, a seed derived from the run seed, and ``frames()``, the frame count a scheduled β reads."""
+    next_keys = [(successor or "next", k) for k in obs_keys]
     return ReplayContext(obs_keys=list(obs_keys), next_obs_keys=next_keys, num_actions=num_actions,
                          gamma=run.train.gamma, frames=frames,
                          make_encoder=lambda: make_encoder(run.encoder.name, **encoder_kwargs(run)),
                          seed=1_000_003 * (run.seed + 1), device=run.device)
 
 
-__all__ = ["encoder_kwargs", "make_network", "replay_context", "ONE_STEP_KEY"]
+__all__ = ["encoder_kwargs", "make_network", "replay_context", "successor_key", "ONE_STEP_KEY"]
