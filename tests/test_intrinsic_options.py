@@ -234,7 +234,7 @@ def test_bad_intrinsic_settings_are_refused_naming_the_key(exploration, key):
 
 
 def test_intrinsic_options_on_another_variant_and_terminal_value_without_discount_are_refused():
-    with pytest.raises(ConfigError, match=r"exploration\.obs_norm.*intrinsic"):
+    with pytest.raises(ConfigError, match=r"exploration\.obs_norm: applies to icm, re3 only"):
         validate(_run("egreedy", obs_norm=True))
     with pytest.raises(ConfigError, match=r"exploration\.terminal_value"):
         validate({**_run(terminal_value=True), "train": {"gamma": 1.0}})
@@ -278,7 +278,8 @@ def _composed_exploration(group: str):
 def test_the_config_groups_hold_the_chosen_defaults_and_the_published_arms():
     from dataclasses import asdict
 
-    from crowdrl.training.config import INTRINSIC_OPTIONS, ExplorationConfig
+    from crowdrl.exploration.intrinsic_strategy import INTRINSIC_OPTIONS
+    from crowdrl.training.config import ExplorationConfig
 
     published = ExplorationConfig()
     for name in ("icm", "re3"):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import dataclass as dataclasses_dataclass
+from dataclasses import make_dataclass as dataclasses_make
 
 import pytest
 import torch
@@ -110,3 +112,56 @@ def test_a_deferred_icm_step_equals_the_step_at_sample_time():
         assert torch.equal(p, q)
     with pytest.raises(RuntimeError, match="learn_from_last"):
         deferred.learn_from_last()
+
+
+def test_a_strategy_owns_its_keys_their_checks_and_an_exclusive_key_is_refused_elsewhere():
+    from crowdrl.exploration.strategy import owned_keys
+
+    assert owned_keys("noisy") == {"sigma0": 0.5} and owned_keys("egreedy") == {}
+    assert set(owned_keys("re3")) - set(owned_keys("icm")) == {"re3_k"}  # the shared intrinsic keys, then its own
+    with pytest.raises(ConfigError, match=r"exploration\.sigma0: must be > 0"):  # noisy's own check
+        validate({"exploration": {"name": "noisy", "sigma0": 0.0}})
+    with pytest.raises(ConfigError, match=r"exploration\.re3_k: must lie in 1\.\.train\.batch_size-1 \(31\)"):
+        validate({"exploration": {"name": "re3", "re3_k": 32}, "train": {"batch_size": 32}})
+    validate({"exploration": {"name": "icm", "re3_k": 32}, "train": {"batch_size": 32}})  # re3_k's bound: re3 only
+    with pytest.raises(ConfigError, match=r"exploration\.icm_feature_norm: applies to icm only; .* 're3'"):
+        validate({"exploration": {"name": "re3", "icm_feature_norm": "layernorm"}})
+
+
+def test_a_key_added_to_a_strategy_at_its_default_changes_no_stored_fingerprint(monkeypatch):
+    """The fingerprint hashes the keys there were, and a later key only under its strategy and off its default:
+    every shipped pretrained agent keeps its fingerprint whichever strategy gains a key."""
+    import dataclasses
+    from pathlib import Path
+
+    from crowdrl.exploration import strategy as registry
+    from crowdrl.training.checkpoint import config_fingerprint, load_checkpoint
+
+    stored = sorted((Path(__file__).resolve().parents[1] / "pretrained").glob("*/best.pt"))
+    assert stored
+    for path in stored:
+        data = load_checkpoint(path)
+        config, fingerprint = data["config"], data["fingerprint"]
+        assert config_fingerprint(config) == fingerprint
+        for name in registry.strategy_names():
+            base = registry._SCHEMAS[name] or object
+            grown = dataclasses.make_dataclass(f"Grown{name}", [("probe_gain", float, dataclasses.field(default=0.25))],
+                                               bases=(base,) if base is not object else ())
+            monkeypatch.setitem(registry._SCHEMAS, name, grown)
+            with_key = {**config, "exploration": {**config["exploration"], "probe_gain": 0.25}}
+            assert config_fingerprint(with_key) == fingerprint, (path, name)  # at its default: unchanged
+            off = {**config, "exploration": {**config["exploration"], "probe_gain": 0.5}}
+            # off its default it counts, but only under the strategy that owns it
+            assert (config_fingerprint(off) != fingerprint) == (config["exploration"]["name"] == name), (path, name)
+            monkeypatch.undo()
+
+
+def test_a_strategy_registered_after_the_run_schema_is_built_with_new_keys_is_refused():
+    @dataclasses_dataclass
+    class LateConfig:
+        late_rate: float = 1.0
+
+    with pytest.raises(RuntimeError, match="import the module that registers 'late' before crowdrl.training"):
+        register_strategy("late", ExplorationStrategy, LateConfig)
+    with pytest.raises(ValueError, match="'sigma0' is declared otherwise"):
+        register_strategy("late", ExplorationStrategy, dataclasses_make("Clash", [("sigma0", float, 0.9)]))

@@ -33,6 +33,7 @@ unchanged, and the greedy test policy can be a plain network.
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, Iterator, TypeVar
 
 import torch.nn.functional as F
@@ -151,7 +152,22 @@ class DropoutExploration(ExplorationStrategy):
         set_dropout_p(self.net, linear_schedule(x.dropout_start, x.dropout_end, x.anneal_frames, frames))
 
 
-register_strategy("dropout", DropoutExploration)
+@dataclass
+class DropoutConfig:
+    """``exploration=dropout``'s own keys: the dropout probability decays linearly from ``dropout_start`` to
+    ``dropout_end`` over ``anneal_frames``."""
+
+    dropout_start: float = 0.5
+    dropout_end: float = 0.01
+
+    @staticmethod
+    def check(config: Any, limits: Any, active: bool) -> None:
+        for key in ("dropout_start", "dropout_end"):
+            if not 0 <= getattr(config, key) < 1:
+                raise ValueError(f"{key}: must lie in [0, 1), got {getattr(config, key)}")
+
+
+register_strategy("dropout", DropoutExploration, DropoutConfig)
 
 __all__ = [
     "DropoutExploration",

@@ -15,13 +15,14 @@ stable-bonus options (``reward_norm``, ``reward_center``, ``reward_clip``, ``obs
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable, Iterable
 
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
 from crowdrl.auxiliary import AuxiliaryLearner
-from crowdrl.exploration.icm import ICM
+from crowdrl.exploration.icm import FEATURE_NORMS, ICM
 from crowdrl.exploration.intrinsic import IntrinsicBonus, IntrinsicRewardTransform, seeded_init
 from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer
 from crowdrl.exploration.re3 import RE3
@@ -123,7 +124,100 @@ def re3_bonus(x: Any, encoder: nn.Module, context: ReplayContext) -> RE3:
     return RE3(encoder, context.obs_keys, k=x.re3_k, seed=context.seed + 1)
 
 
-register_strategy("icm", lambda config: IntrinsicExploration(config, icm_bonus))
-register_strategy("re3", lambda config: IntrinsicExploration(config, re3_bonus))
+ONLY = {"exclusive": True}  # refused off its default under a strategy that does not own it
 
-__all__ = ["BonusLearner", "IntrinsicExploration", "icm_bonus", "re3_bonus"]
+
+@dataclass
+class IntrinsicConfig:
+    """The keys ICM and RE3 share: ``r = r_ext + β r_in`` with β's schedule (``constant``; ``linear`` to
+    ``beta_end`` over ``anneal_frames``; ``exp``: ``β (1 - beta_decay)^frames``; null: linear when ``beta_end`` is
+    given, else constant) and the stable-bonus options of :class:`IntrinsicRewardTransform` (``docs/mdp.md``,
+    "Intrinsic-reward options"; the defaults are the method as published)."""
+
+    beta: float = 0.01
+    beta_end: float | None = None
+    beta_schedule: str | None = field(default=None, metadata=ONLY)
+    beta_decay: float | None = field(default=None, metadata=ONLY)
+    reward_norm: str = field(default="none", metadata=ONLY)  # none | std (running) | batch (standardised per batch)
+    reward_center: bool = field(default=False, metadata=ONLY)  # r_in minus its mean: no net per-step bonus
+    reward_clip: float | None = field(default=None, metadata=ONLY)  # clip the normalised r_in to [-c, c]
+    obs_norm: bool = field(default=False, metadata=ONLY)  # the bonus's inputs whitened, clipped to ±obs_clip
+    obs_clip: float = field(default=5.0, metadata=ONLY)
+    terminal_value: bool = field(default=False, metadata=ONLY)  # terminal transitions get β γ^m mean(r_in) / (1 - γ)
+
+    @staticmethod
+    def check(x: Any, limits: Any, active: bool) -> None:
+        from crowdrl.exploration.normalize import REWARD_SCALES
+        from crowdrl.exploration.schedule import SCHEDULES
+
+        if x.beta < 0:
+            raise ValueError(f"beta: must be >= 0, got {x.beta}")
+        if x.beta_end is not None and x.beta_end < 0:
+            raise ValueError(f"beta_end: must be >= 0 or null, got {x.beta_end}")
+        if x.beta_schedule is not None and x.beta_schedule not in SCHEDULES:
+            raise ValueError(f"beta_schedule: got {x.beta_schedule!r}; allowed: {', '.join(SCHEDULES)} or null")
+        schedule = beta_schedule_of(x)
+        if schedule == "linear" and x.beta_end is None:
+            raise ValueError("beta_end: beta_schedule=linear needs exploration.beta_end (the value reached after "
+                             "exploration.anneal_frames)")
+        if schedule != "linear" and x.beta_end is not None:
+            raise ValueError(f"beta_end: is set ({x.beta_end}) but beta_schedule={schedule} does not use it; use "
+                             f"beta_schedule=linear or beta_end=null")
+        if schedule == "exp" and x.beta_decay is None:
+            raise ValueError("beta_decay: beta_schedule=exp needs exploration.beta_decay (β_t = β (1 - beta_decay)^frames)")
+        if schedule != "exp" and x.beta_decay is not None:
+            raise ValueError(f"beta_decay: is set ({x.beta_decay}) but beta_schedule={schedule} does not use it; use "
+                             f"beta_schedule=exp or beta_decay=null")
+        if x.beta_decay is not None and not 0 <= x.beta_decay < 1:
+            raise ValueError(f"beta_decay: must lie in [0, 1), got {x.beta_decay}")
+        if x.reward_norm not in REWARD_SCALES:
+            raise ValueError(f"reward_norm: got {x.reward_norm!r}; allowed: {', '.join(REWARD_SCALES)}")
+        if x.reward_clip is not None and x.reward_clip <= 0:
+            raise ValueError(f"reward_clip: must be > 0 or null, got {x.reward_clip}")
+        if x.obs_clip <= 0:
+            raise ValueError(f"obs_clip: must be > 0, got {x.obs_clip}")
+        if x.terminal_value and limits.gamma >= 1:
+            raise ValueError(f"terminal_value: values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, "
+                             f"got {limits.gamma}")
+
+
+@dataclass
+class ICMConfig(IntrinsicConfig):
+    """``exploration=icm``: the shared intrinsic keys, ICM's Adam learning rate and its feature options."""
+
+    icm_lr: float = 1e-4
+    icm_feature_norm: str = field(default="none", metadata=ONLY)  # none | layernorm: φ ends with a gain-free LayerNorm
+    icm_detach_target: bool = field(default=True, metadata=ONLY)  # false: the forward loss reaches φ(s') too
+
+    @staticmethod
+    def check(x: Any, limits: Any, active: bool) -> None:
+        IntrinsicConfig.check(x, limits, active)
+        if x.icm_lr <= 0:
+            raise ValueError(f"icm_lr: must be > 0, got {x.icm_lr}")
+        if x.icm_feature_norm not in FEATURE_NORMS:
+            raise ValueError(f"icm_feature_norm: got {x.icm_feature_norm!r}; allowed: {', '.join(FEATURE_NORMS)}")
+
+
+@dataclass
+class RE3Config(IntrinsicConfig):
+    """``exploration=re3``: the shared intrinsic keys and the k of the k-nearest-neighbour bonus."""
+
+    re3_k: int = 3
+
+    @staticmethod
+    def check(x: Any, limits: Any, active: bool) -> None:
+        IntrinsicConfig.check(x, limits, active)
+        if x.re3_k < 1:
+            raise ValueError(f"re3_k: must be >= 1, got {x.re3_k}")
+        if active and x.re3_k >= limits.batch_size:
+            raise ValueError(f"re3_k: must lie in 1..train.batch_size-1 ({limits.batch_size - 1}), got {x.re3_k}")
+
+
+#: the stable-bonus options (the keys refused off their default under a non-intrinsic strategy)
+INTRINSIC_OPTIONS = tuple(f.name for f in fields(ICMConfig) if f.metadata.get("exclusive"))
+
+register_strategy("icm", lambda config: IntrinsicExploration(config, icm_bonus), ICMConfig)
+register_strategy("re3", lambda config: IntrinsicExploration(config, re3_bonus), RE3Config)
+
+__all__ = ["BonusLearner", "ICMConfig", "INTRINSIC_OPTIONS", "IntrinsicConfig", "IntrinsicExploration", "RE3Config",
+           "icm_bonus", "re3_bonus"]

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, ContextManager, Iterator, TypeVar
 
 import torch
@@ -194,7 +195,19 @@ class NoisyExploration(ExplorationStrategy):
         return noise_disabled(self.net)
 
 
-register_strategy("noisy", NoisyExploration)
+@dataclass
+class NoisyConfig:
+    """``exploration=noisy``'s own key: the factorised NoisyLinear's ``σ0``."""
+
+    sigma0: float = 0.5
+
+    @staticmethod
+    def check(config: Any, limits: Any, active: bool) -> None:
+        if config.sigma0 <= 0:
+            raise ValueError(f"sigma0: must be > 0, got {config.sigma0}")
+
+
+register_strategy("noisy", NoisyExploration, NoisyConfig)
 
 __all__ = [
     "FactorisedNoisyLinear",

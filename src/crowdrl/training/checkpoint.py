@@ -39,6 +39,14 @@ _NEUTRAL = {"env": {"min_humans": None, "max_humans": None, "human_model": Crowd
                     **{k: getattr(CrowdConfig, k) for k in (*SOCIAL_FORCE_KEYS, *SHARE_KEYS)}}}
 
 
+# The exploration keys there were when strategies came to own their keys: hashed at any value, as then, so stored
+# checkpoints keep their fingerprints. A key a strategy's schema gains since is hashed only under that strategy
+# and off its default: a key added at its default changes no fingerprint.
+FINGERPRINTED_EXPLORATION = ("name", "eps_start", "eps_end", "anneal_frames", "dropout_start", "dropout_end", "sigma0",
+                             "beta", "beta_end", "beta_schedule", "beta_decay", "reward_norm", "reward_center",
+                             "reward_clip", "obs_norm", "obs_clip", "terminal_value", "icm_lr", "icm_feature_norm",
+                             "icm_detach_target", "re3_k")
+
 _TRAIN_NEUTRAL = LEVERS_OFF  # the levers off (not today's defaults): as before the keys
 
 
@@ -67,6 +75,13 @@ def fingerprinted(config: dict) -> dict[str, Any]:
     for group, neutral in _NEUTRAL.items():
         if group in keep:
             keep[group] = {k: v for k, v in keep[group].items() if not (k in neutral and v == neutral[k])}
+    if isinstance(keep.get("exploration"), dict):
+        from crowdrl.exploration.strategy import owned_keys
+
+        section = keep["exploration"]
+        owned = owned_keys(str(section.get("name")))
+        keep["exploration"] = {k: v for k, v in section.items()
+                               if k in FINGERPRINTED_EXPLORATION or (k in owned and v != owned[k])}
     if "env" in keep:  # the ORCA backend changes speed, not numbers; obstacle geometry nothing in open space;
         # the lidar keys nothing without a scan (runs recorded before them had none); the social-force
         # parameters nothing unless some humans follow that model (social_force, or mixed with a share of it)

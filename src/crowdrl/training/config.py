@@ -24,12 +24,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import crowdrl.exploration  # noqa: F401  (registers the shipped strategies and their schemas)
+from crowdrl.exploration.strategy import exploration_config_class
 from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, OBSTACLE_SCENARIOS, CrowdConfig
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EVAL_BATCH = 1000  # episodes stepped at once by the final test (and experiments/evaluate.py's eval.batch)
 EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")  # the shipped variants; any registered strategy is valid
-INTRINSIC = ("icm", "re3")
 LOGGERS = ("wandb", "csv")
 WANDB_MODES = ("offline", "online", "disabled")
 
@@ -82,37 +83,9 @@ class EncoderConfig:
     name: str = "sgd3qn"
 
 
-@dataclass
-class ExplorationConfig:
-    """Exploration variant (``docs/mdp.md``, "Exploration variants"). ``anneal_frames`` is the
-    length of the ε schedule and of the dropout-p schedule; ``eps_*`` apply to every variant (the
-    non-ε variants set them to 0)."""
-
-    name: str = "egreedy"
-    eps_start: float = 0.5
-    eps_end: float = 0.1
-    anneal_frames: int = 40_000  # the demo's; the paper's 4000 episodes (200k) in exploration/*.yaml
-    sigma0: float = 0.5  # noisy: factorised NoisyLinear σ0
-    dropout_start: float = 0.5  # dropout: p decays linearly start -> end over anneal_frames
-    dropout_end: float = 0.01
-    beta: float = 0.01  # icm/re3: r = r_ext + β r_in
-    beta_end: float | None = None  # icm/re3, linear schedule: β -> beta_end over anneal_frames
-    # icm/re3: constant | linear (needs beta_end) | exp (needs beta_decay: β (1 - beta_decay)^frames);
-    # null: linear when beta_end is given, else constant
-    beta_schedule: str | None = None
-    beta_decay: float | None = None
-    icm_lr: float = 1e-4
-    re3_k: int = 3
-    # icm/re3, stable-bonus options of IntrinsicRewardTransform (docs/mdp.md, "Intrinsic-reward options");
-    # the defaults are the method as published
-    reward_norm: str = "none"  # none | std: r_in divided by its running std | batch: standardised over the sampled batch
-    reward_center: bool = False  # r_in minus its mean (running, or the batch's with reward_norm=batch): no net per-step bonus
-    reward_clip: float | None = None  # clip the normalised r_in to [-c, c]
-    obs_norm: bool = False  # the bonus's input observations whitened by running mean/std, clipped to ±obs_clip
-    obs_clip: float = 5.0
-    terminal_value: bool = False  # terminal transitions get β γ^m mean(r_in) / (1 - γ): ending never forgoes the bonus
-    icm_feature_norm: str = "none"  # none | layernorm: ICM's φ ends with a LayerNorm without gain (fixed scale)
-    icm_detach_target: bool = True  # false: the forward loss's gradient reaches φ(s') too (Pathak et al.'s code)
+# The exploration section: the keys every strategy reads and those of each registered strategy's own schema
+# (crowdrl.exploration.strategy.register_strategy; importing crowdrl.exploration registers the shipped ones).
+ExplorationConfig = exploration_config_class()
 
 
 @dataclass
@@ -265,9 +238,6 @@ class RunConfig:
     # ``run_dir: null``, still loads; a value is refused (the folder is hydra.run.dir or --out)
     run_dir: str | None = None
 
-
-INTRINSIC_OPTIONS = ("beta_schedule", "beta_decay", "reward_norm", "reward_center", "reward_clip", "obs_norm",
-                     "obs_clip", "terminal_value", "icm_feature_norm", "icm_detach_target")
 
 
 def sees_obstacles(run: RunConfig) -> bool:

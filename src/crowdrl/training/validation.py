@@ -17,9 +17,8 @@ from crowdrl.schema import SchemaError, check_bools
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.rng import MAX_SEED
-from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, INTRINSIC,
-                                     INTRINSIC_OPTIONS, LOGGERS, WANDB_MODES, ConfigError, ExplorationConfig, RunConfig,
-                                     crowd_config, crowd_range)
+from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, LOGGERS, WANDB_MODES, ConfigError,
+                                     RunConfig, crowd_config, crowd_range)
 from crowdrl.training.resources import check_resources
 
 
@@ -61,7 +60,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
         raise ConfigError(str(exc)) from None
     for key, value in _floats(run):
         check(math.isfinite(value), key, f"must be a finite number, got {value}")
-    e, t, x = run.env, run.train, run.exploration
+    e, t = run.env, run.train
     one_of(e.scenario, "env.scenario", SCENARIOS)
     check(1 <= e.num_humans <= MAX_HUMANS, "env.num_humans", f"must lie in 1..{MAX_HUMANS}, got {e.num_humans}")
     for key in ("min_humans", "max_humans"):
@@ -77,22 +76,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
-    from crowdrl.exploration.strategy import strategy_names
-
-    one_of(x.name, "exploration.name", strategy_names())
-    check(0 <= x.eps_end <= x.eps_start <= 1, "exploration.eps_start/eps_end",
-          f"need 0 <= eps_end <= eps_start <= 1, got {x.eps_start} -> {x.eps_end}")
-    check(x.anneal_frames >= 1, "exploration.anneal_frames", f"must be >= 1, got {x.anneal_frames}")
-    check(x.sigma0 > 0, "exploration.sigma0", f"must be > 0, got {x.sigma0}")
-    for key in ("dropout_start", "dropout_end"):
-        check(0 <= getattr(x, key) < 1, f"exploration.{key}", f"must lie in [0, 1), got {getattr(x, key)}")
-    check(x.beta >= 0, "exploration.beta", f"must be >= 0, got {x.beta}")
-    check(x.beta_end is None or x.beta_end >= 0, "exploration.beta_end", f"must be >= 0 or null, got {x.beta_end}")
-    _check_intrinsic_options(x)
-    check(x.icm_lr > 0, "exploration.icm_lr", f"must be > 0, got {x.icm_lr}")
-    check(x.re3_k >= 1, "exploration.re3_k", f"must be >= 1, got {x.re3_k}")
-    check(x.name != "re3" or x.re3_k < run.train.batch_size, "exploration.re3_k",
-          f"must lie in 1..train.batch_size-1 ({run.train.batch_size - 1}), got {x.re3_k}")
+    check_exploration(run)
     one_of(run.logger.name, "logger.name", LOGGERS)
     one_of(run.logger.mode, "logger.mode", WANDB_MODES)
     for key in ("num_envs", "steps_per_batch", "total_frames", "buffer_size", "batch_size", "n_step",
@@ -105,8 +89,6 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     check(t.batch_size <= t.buffer_size, "train.batch_size",
           f"({t.batch_size}) must not exceed train.buffer_size ({t.buffer_size})")
     check(0 < t.gamma <= 1, "train.gamma", f"must lie in (0, 1], got {t.gamma}")
-    check(not x.terminal_value or t.gamma < 1, "exploration.terminal_value",
-          f"values the forgone bonus as mean / (1 - gamma): needs train.gamma < 1, got {t.gamma}")
     check(t.lr > 0, "train.lr", f"must be > 0, got {t.lr}")
     check(t.updates_per_frame >= 0, "train.updates_per_frame", f"must be >= 0, got {t.updates_per_frame}")
     check(0 < t.target_tau <= 1, "train.target_tau", f"must lie in (0, 1], got {t.target_tau}")
@@ -151,33 +133,16 @@ def check_logger(run: RunConfig) -> None:
                           "run `wandb login` first, or use logger.mode=offline and `wandb sync` later")
 
 
-def _check_intrinsic_options(x: ExplorationConfig) -> None:
-    from crowdrl.exploration.icm import FEATURE_NORMS
-    from crowdrl.exploration.normalize import REWARD_SCALES
-    from crowdrl.exploration.schedule import SCHEDULES, beta_schedule_of
+def check_exploration(run: RunConfig) -> None:
+    """The exploration section, checked by the strategies that own its keys
+    (:func:`crowdrl.exploration.strategy.check_exploration`); :class:`ConfigError` naming ``exploration.<key>``."""
+    from crowdrl.exploration.strategy import Limits
+    from crowdrl.exploration.strategy import check_exploration as check_section
 
-    if x.name not in INTRINSIC:
-        defaults = ExplorationConfig()
-        for key in INTRINSIC_OPTIONS:
-            check(getattr(x, key) == getattr(defaults, key), f"exploration.{key}",
-                  f"applies to the intrinsic variants ({', '.join(INTRINSIC)}) only; exploration.name is {x.name!r}")
-    check(x.beta_schedule is None or x.beta_schedule in SCHEDULES, "exploration.beta_schedule",
-          f"got {x.beta_schedule!r}; allowed: {', '.join(SCHEDULES)} or null")
-    schedule = beta_schedule_of(x)
-    check(schedule != "linear" or x.beta_end is not None, "exploration.beta_end",
-          "beta_schedule=linear needs exploration.beta_end (the value reached after exploration.anneal_frames)")
-    check(schedule == "linear" or x.beta_end is None, "exploration.beta_end",
-          f"is set ({x.beta_end}) but beta_schedule={schedule} does not use it; use beta_schedule=linear or beta_end=null")
-    check(schedule != "exp" or x.beta_decay is not None, "exploration.beta_decay",
-          "beta_schedule=exp needs exploration.beta_decay (β_t = β (1 - beta_decay)^frames)")
-    check(schedule == "exp" or x.beta_decay is None, "exploration.beta_decay",
-          f"is set ({x.beta_decay}) but beta_schedule={schedule} does not use it; use beta_schedule=exp or beta_decay=null")
-    check(x.beta_decay is None or 0 <= x.beta_decay < 1, "exploration.beta_decay",
-          f"must lie in [0, 1), got {x.beta_decay}")
-    one_of(x.reward_norm, "exploration.reward_norm", REWARD_SCALES)
-    check(x.reward_clip is None or x.reward_clip > 0, "exploration.reward_clip", f"must be > 0 or null, got {x.reward_clip}")
-    check(x.obs_clip > 0, "exploration.obs_clip", f"must be > 0, got {x.obs_clip}")
-    one_of(x.icm_feature_norm, "exploration.icm_feature_norm", FEATURE_NORMS)
+    try:
+        check_section(run.exploration, Limits(batch_size=run.train.batch_size, gamma=run.train.gamma))
+    except ValueError as exc:
+        raise ConfigError(f"exploration.{exc}") from None
 
 
 def check_counterfactual(run: RunConfig) -> None:
