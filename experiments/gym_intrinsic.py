@@ -44,7 +44,7 @@ from torchrl.envs import Compose, GymEnv, ObservationNorm, RewardSum, StepCounte
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate
 
-from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform
+from crowdrl.exploration import ICM, RE3, RND, IntrinsicBonus, IntrinsicRewardTransform
 from crowdrl.exploration.normalize import REWARD_SCALES, ObservationNormalizer, RewardNormalizer
 
 STORED_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -67,7 +67,8 @@ def make_env(name: str, seed: int) -> TransformedEnv:
 
 def make_bonus(kind: str, obs_dim: int, num_actions: int, seed: int, feature_norm: str = "none"
                ) -> IntrinsicBonus | None:
-    """ICM or RE3 with a small MLP feature encoder of its own (``None`` for ``--bonus none``)."""
+    """ICM, RE3 or RND with a small MLP feature encoder of its own (RND: two, its target's and its predictor's;
+    ``None`` for ``--bonus none``)."""
     if kind == "none":
         return None
     with torch.random.fork_rng(devices=[]):  # the bonus never shifts the global stream
@@ -77,13 +78,18 @@ def make_bonus(kind: str, obs_dim: int, num_actions: int, seed: int, feature_nor
         return ICM(encoder, num_actions, feature_dim=64, feature_norm=feature_norm, seed=seed + 2)
     if kind == "re3":
         return RE3(encoder, feature_dim=64, k=3, seed=seed + 2)
-    raise ValueError(f"unknown bonus {kind!r}; allowed: icm, re3, none")
+    if kind == "rnd":
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed + 3)
+            predictor = nn.Sequential(nn.Linear(obs_dim, 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU())
+        return RND(encoder, predictor, feature_dim=64, seed=seed + 2)
+    raise ValueError(f"unknown bonus {kind!r}; allowed: icm, re3, rnd, none")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="CartPole-v1")
-    p.add_argument("--bonus", choices=("icm", "re3", "none"), default="icm")
+    p.add_argument("--bonus", choices=("icm", "re3", "rnd", "none"), default="icm")
     p.add_argument("--beta", type=float, default=0.01, help="intrinsic reward scale (default 0.01)")
     p.add_argument("--frames", type=int, default=20_000)
     p.add_argument("--seed", type=int, default=0)

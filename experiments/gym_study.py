@@ -34,6 +34,7 @@ ARMS = {
     "re3": ["--bonus", "re3"],
     "icm-stable": ["--bonus", "icm", *STABLE, "--feature-norm", "layernorm"],
     "re3-stable": ["--bonus", "re3", *STABLE],
+    "rnd": ["--bonus", "rnd", "--obs-norm", "--reward-norm", "std"],  # as conf/exploration/rnd.yaml (Burda et al.)
 }
 COLUMNS = (("first_terminated_episode", "episodes to first goal", 0), ("terminated_episodes", "episodes at the goal", 0),
            ("final_terminated_rate", "success, last 20 episodes", 2))

@@ -38,7 +38,7 @@ def test_module_examples_pass(name):
 
 
 # modules whose functions carry short examples (without an Examples: section): they pass too
-FUNCTION_EXAMPLES = ("crowdrl.envs.episodes", "crowdrl.training.compat", "crowdrl.training.validation")
+FUNCTION_EXAMPLES = ("crowdrl.envs.episodes", "crowdrl.exploration.rnd", "crowdrl.training.compat", "crowdrl.training.validation")
 
 
 @pytest.mark.parametrize("name", FUNCTION_EXAMPLES)

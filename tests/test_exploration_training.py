@@ -40,7 +40,7 @@ def _run(tmp_path: Path, name: str, train: dict | None = None, **exploration) ->
     return trainer, summary
 
 
-@pytest.mark.parametrize("name", ["noisy", "dropout", "icm", "re3"])
+@pytest.mark.parametrize("name", ["noisy", "dropout", "icm", "re3", "rnd"])
 def test_every_variant_trains_validates_and_tests(tmp_path, name):
     trainer, summary = _run(tmp_path, name, eps_start=0.0, eps_end=0.0)
     assert summary["updates"] > 0 and summary["frames"] == 160
@@ -51,13 +51,13 @@ def test_every_variant_trains_validates_and_tests(tmp_path, name):
         assert len(layers) == 4 and all(abs(m.p - 0.01) < 1e-9 for m in layers)  # schedule reached its end
     rows = [json.loads(line) for line in (tmp_path / name / "scalars.jsonl").read_text().splitlines()]
     train_rows = [r for r in rows if r["kind"] == "train"]
-    if name in ("icm", "re3"):
+    if name in ("icm", "re3", "rnd"):
         assert train_rows and all(r["train/intrinsic_reward_int_raw_mean"] > 0 for r in train_rows)
     result = evaluate_best(trainer.run, tmp_path / name)  # noisy: parameters saved under own names
     assert result["metrics"]["episodes"] == 4
 
 
-@pytest.mark.parametrize("name", ["icm", "re3"])
+@pytest.mark.parametrize("name", ["icm", "re3", "rnd"])
 def test_beta_zero_reproduces_the_extrinsic_only_run_bit_for_bit(tmp_path, name):
     """Same seed, β = 0: the Q network ends exactly where the run without any bonus ends."""
     plain, _ = _run(tmp_path / "plain", "egreedy", eps_start=0.0, eps_end=0.0)

@@ -309,7 +309,7 @@ def _final(run_dir: Path) -> tuple[dict, dict, list]:
 # successors, the normalisers' statistics); the others run in make test-slow, and
 # tests/test_training.py's slow test kills a real train.py process with SIGKILL.
 @pytest.mark.parametrize("name", ["icm+options", "egreedy+counterfactual", *[pytest.param(n, marks=pytest.mark.slow)
-                                                   for n in ("icm", "egreedy", "noisy", "dropout", "re3")]])
+                                                   for n in ("icm", "egreedy", "noisy", "dropout", "re3", "rnd")]])
 def test_a_killed_run_resumed_with_its_buffer_is_bit_identical_to_the_uninterrupted_run(tmp_path, name):
     """Killed mid-update at frame 224 (last checkpoint: frame 192, in-flight episodes and all), then
     resumed by a new trainer: the same final weights (online, target, optimizer), the same test

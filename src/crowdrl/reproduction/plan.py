@@ -116,7 +116,7 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     from crowdrl.schema import SchemaError, read_typed
     from crowdrl.sim.config import SCENARIOS
     from crowdrl.sim.rng import MAX_SEED
-    from crowdrl.training.config import EXPLORATIONS
+    from crowdrl.exploration.strategy import strategy_names
 
     try:
         s = read_typed(ReproduceConfig, cfg, reader="reproduce.py")
@@ -162,7 +162,7 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     return Plan(counterfactual=tuple(counterfactual.items()), levers=levers, planning=s.planning, budget=s.budget,
                 ceiling=ceiling,
                 encoders=names("encoders", tuple(sorted(ENCODERS))),
-                variants=names("variants", EXPLORATIONS), seeds=tuple(seeds),
+                variants=names("variants", strategy_names()), seeds=tuple(seeds),
                 train_scenario=s.train_scenario, scenarios=scenarios,
                 episodes=at_least("episodes", 1), jobs=at_least("jobs", 1), launcher=s.launcher,
                 threads=at_least("threads", 1), reps=at_least("reps", 100), out=Path(s.out))

@@ -30,7 +30,6 @@ from crowdrl.sim.config import HUMAN_KEYS, LIDAR_KEYS, OBSTACLE_KEYS, OBSTACLE_S
 
 FRAMES_PER_EPISODE = 50  # the paper's episode -> frame conversion (documented above)
 EVAL_BATCH = 1000  # episodes stepped at once by the final test (and experiments/evaluate.py's eval.batch)
-EXPLORATIONS = ("egreedy", "noisy", "dropout", "icm", "re3")  # the shipped variants; any registered strategy is valid
 LOGGERS = ("wandb", "csv")
 WANDB_MODES = ("offline", "online", "disabled")
 
