@@ -234,7 +234,7 @@ def test_bad_intrinsic_settings_are_refused_naming_the_key(exploration, key):
 
 
 def test_intrinsic_options_on_another_variant_and_terminal_value_without_discount_are_refused():
-    with pytest.raises(ConfigError, match=r"exploration\.obs_norm: applies to icm, re3, rnd only; exploration\.name is .egreedy."):
+    with pytest.raises(ConfigError, match=r"exploration\.obs_norm: applies to icm, re3, rnd only; exploration\.name is"):
         validate(_run("egreedy", obs_norm=True))
     with pytest.raises(ConfigError, match=r"exploration\.terminal_value"):
         validate({**_run(terminal_value=True), "train": {"gamma": 1.0}})
