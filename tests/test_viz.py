@@ -131,3 +131,10 @@ def test_a_trajectory_round_trips_through_its_file_and_a_run_folder_is_drawn_fro
     (tmp_path / "bad.trajectory.json").write_text(json.dumps({"format": "other"}))
     with pytest.raises(ValueError, match=r"bad\.trajectory\.json: not a crowdrl trajectory"):
         Trajectory.load(tmp_path / "bad.trajectory.json")
+
+
+def test_a_run_folder_that_does_not_exist_is_refused_naming_it(tmp_path: Path) -> None:
+    from crowdrl.viz import render_run_folder
+
+    with pytest.raises(FileNotFoundError, match=r"run_dir: .*nowhere is not a folder"):
+        render_run_folder(tmp_path / "nowhere")

@@ -136,5 +136,20 @@ def atomic_write_json(path: Path | str, obj: Any, *, default: Callable[[Any], An
     atomic_write_bytes(path, dumps_json(obj, default=default).encode())
 
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "dumps_json", "finite_or_null",
+def read_json_lines(path: Path | str) -> list[Any]:
+    """The records of a JSON-lines file (``scalars.jsonl``), up to a line a kill cut short (everything after it is
+    lost anyway); an empty list for a file that does not exist."""
+    path = Path(path)
+    out = []
+    if path.exists():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                break
+    return out
+
+
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "dumps_json", "finite_or_null", "read_json_lines",
            "remove_stale_temporaries"]
+

@@ -91,16 +91,17 @@ class RND(IntrinsicBonus):
         self.optimizer = torch.optim.Adam(self.predictor.parameters(), lr=lr)
 
     def _packed(self, td: TensorDictBase) -> TensorDictBase:
+        """The successor's observation tensors as one tensordict (its boolean keys recorded for the networks)."""
         obs = dict(zip(self.in_keys, self.obs(td, next_=True)))
         for key, value in obs.items():
             if value.dtype == torch.bool:
                 self.target.bool_keys.add(key)
                 self.predictor.bool_keys.add(key)
-        return TensorDict({("next", PACKED): TensorDict(obs, batch_size=td.batch_size)}, batch_size=td.batch_size)
+        return TensorDict(obs, batch_size=td.batch_size)
 
     def errors(self, td: TensorDictBase) -> Tensor:
         """``mean_j (f̂(s')_j - f(s')_j)^2`` per sample ``[*B]`` (with gradients to the predictor)."""
-        packed = self._packed(td).get(("next", PACKED))
+        packed = self._packed(td)
         with torch.no_grad():
             target = self.target(packed)
         return (self.predictor(packed) - target).pow(2).mean(-1)
@@ -111,7 +112,7 @@ class RND(IntrinsicBonus):
 
     def update(self, td: TensorDictBase) -> dict[str, float]:
         """One Adam step of the predictor on TorchRL's ``RNDLoss`` over the batch's successors."""
-        loss = self.loss(self._packed(td))["loss_predictor"]
+        loss = self.loss(TensorDict({("next", PACKED): self._packed(td)}, batch_size=td.batch_size))["loss_predictor"]
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

@@ -159,10 +159,6 @@ class D3QNLearner:
         self._part_losses.clear()
         return out
 
-    def part_scalars(self) -> dict[str, float]:
-        """The update part's own scalars about the last update."""
-        return self.part.scalars()
-
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
         """The checkpoint keys of the learner (the trainer's names: stored runs load)."""

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import csv
-import json
 import os
 from pathlib import Path
 from typing import Any
 
-from crowdrl.files import atomic_write_bytes, atomic_write_with, dumps_json
+from crowdrl.files import atomic_write_bytes, atomic_write_with, dumps_json, read_json_lines
 
 
 def _json_line(row: dict[str, Any]) -> str:
@@ -37,14 +36,7 @@ class ScalarLog:
         os.fsync(self._f.fileno())
 
     def rows(self) -> list[dict[str, Any]]:
-        out = []
-        if self.path.exists():
-            for line in self.path.read_text(encoding="utf-8").splitlines():
-                try:
-                    out.append(json.loads(line))
-                except json.JSONDecodeError:
-                    break  # a line cut by a kill: everything after it is lost anyway
-        return out
+        return read_json_lines(self.path)
 
     def truncate_after(self, frames: int) -> int:
         """Keep rows with ``frames <= frames``; return how many rows were dropped."""

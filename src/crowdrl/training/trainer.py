@@ -320,7 +320,7 @@ class Trainer:
             "train/loss": loss_value,
             **{f"train/{k}": v for k, v in self.learner.scalars().items()},
             **{f"train/{k}": v for k, v in self.learner.pop_part_losses().items()},
-            **{f"train/{k}": v for k, v in self.learner.part_scalars().items()},
+            **{f"train/{k}": v for k, v in self.learner.part.scalars().items()},
             **{f"time/{k}_s": v for k, v in self.counters.timers().items()},
         })
 

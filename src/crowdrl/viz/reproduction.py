@@ -4,10 +4,10 @@ method side by side on test case 0, and a GIF of that episode. Figures take resu
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from crowdrl.evaluation.trajectory import Trajectory
+from crowdrl.files import read_json_lines
 from crowdrl.reproduction.plan import DEFAULT_ENCODER, Plan
 
 
@@ -21,7 +21,7 @@ def write_figures(plan: Plan, rows: list[dict[str, Any]], case0: tuple[Trajector
         curves[method.name] = []
         for seed in plan.seeds:
             path = plan.run_dir(method, seed) / "scalars.jsonl"
-            curves[method.name].append([json.loads(line) for line in path.read_text().splitlines() if line.strip()])
+            curves[method.name].append(read_json_lines(path))
     arch = "SG-D3QN" if plan.encoders == (DEFAULT_ENCODER,) else ", ".join(plan.encoders)
     plot_seed_curves(curves, plan.out / "curves.png", title=f"{arch} on {plan.train_scenario}, budget {plan.budget}")
     plot_intervals(rows, plan.out / "intervals.png", title=f"test success over seeds, budget {plan.budget}")
