@@ -80,7 +80,7 @@ def profile(num_envs: int, batches: int, backend: str, acting: str = "eager") ->
     strategy = make_strategy(run.exploration)  # one strategy: the network it modifies is the one its policy schedules
     actor = factories.make_actor(run, env, make_network(run, 81, strategy=strategy))
     policy = factories.make_exploration(env, actor, strategy)
-    it = iter(factories.make_collector(run, env, policy))
+    it = iter(factories.make_collector(run.train, env, policy, run.device))
     for _ in range(10):
         next(it)
     prof = cProfile.Profile()

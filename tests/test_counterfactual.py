@@ -17,7 +17,7 @@ from crowdrl.training import ConfigError, validate
 from crowdrl.training.checkpoint import config_fingerprint
 from crowdrl.training.config import to_dict
 from crowdrl.training.counterfactual import CounterfactualExperience
-from crowdrl.training.factories import obs_keys
+from crowdrl.training.facts import obs_keys
 from crowdrl.training.loss import WEIGHT_KEY, D3QNLoss
 
 CASES = [  # scenario, crowd, steps: fixed and variable crowds, open space and walls (circle's robots, heading

@@ -106,7 +106,8 @@ def test_absent_humans_are_zero_rows_of_the_observation():
 # ---------------------------------------------------------------- the env and its transforms
 def test_env_emits_the_mask_and_the_robot_centric_transform_keeps_it():
     from crowdrl.training.validation import validate as v
-    from crowdrl.training.factories import make_env, obs_keys
+    from crowdrl.training.facts import obs_keys
+    from crowdrl.training.factories import make_env
 
     run = v({"env": {"min_humans": 2, "max_humans": 6}, "train": {"num_envs": 8}})
     env = make_env(run, split="train")
@@ -326,14 +327,16 @@ def test_crowd_sizes_script_writes_the_generalisation_table(range_run, tmp_path)
 def test_the_planner_on_a_variable_crowd_plans_as_on_the_humans_present(predictor):
     """planning.enabled with a crowd range: the planner reads the mask, and each row's plan equals
     the plan of the same state with the absent humans cut off."""
-    from crowdrl.training.factories import make_actor, make_env, make_predictor_of
+    from crowdrl.training.acting import make_predictor_of
+    from crowdrl.training.facts import RunFacts
+    from crowdrl.training.factories import make_actor, make_env
 
     torch.manual_seed(0)
     run = validate({"env": {"min_humans": 2, "max_humans": 6}, "train": {"num_envs": 12},
                     "planning": {"enabled": True, "predictor": predictor}})
     env = make_env(run, split="val")
     net = fresh_network(run).eval()
-    planner = make_actor(run, env, net, make_predictor_of(run, 0.25))
+    planner = make_actor(run, env, net, make_predictor_of(run.planning, RunFacts.of(run)))
     assert "humans_mask" in planner.in_keys
     td = env.reset()
     td = env.rollout(5, planner, auto_reset=False, tensordict=td, break_when_any_done=False)[:, -1]["next"]
@@ -346,4 +349,4 @@ def test_the_planner_on_a_variable_crowd_plans_as_on_the_humans_present(predicto
     fixed = validate({"train": {"num_envs": 2}, "planning": {"enabled": True}})
     fixed_env = make_env(fixed, split="val")
     assert "humans_mask" not in make_actor(fixed, fixed_env, fresh_network(fixed),
-                                           make_predictor_of(fixed, 0.25)).in_keys
+                                           make_predictor_of(fixed.planning, RunFacts.of(fixed))).in_keys

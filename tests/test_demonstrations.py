@@ -15,7 +15,9 @@ from crowdrl.training import ConfigError, Trainer, validate
 from crowdrl.training.checkpoint import config_fingerprint
 from crowdrl.training.config import to_dict
 from crowdrl.training.demonstrations import DEMO_FIRST_EPISODE, add_demonstrations, solve_cases
-from crowdrl.training.factories import make_buffer, make_env, obs_keys, stored_keys
+from crowdrl.training.counterfactual import WORLD_KEYS
+from crowdrl.training.facts import RunFacts
+from crowdrl.training.factories import make_buffer, make_env
 
 TINY = {"preset": "smoke", "env": {"num_humans": 4},
         "logger": {"name": "csv", "progress_bar": False, "render": False},
@@ -34,9 +36,10 @@ def test_stored_demonstrations_are_the_env_transitions_of_the_oracle_paths(n_ste
     torch.manual_seed(0)
     run = validate(tiny(n_step=n_step, counterfactual={"mode": "second_update"}))
     env = make_env(run, split="train", num_envs=1)
-    cfg, keys = env.base_env.config, obs_keys(env.base_env.config)
-    buffer = make_buffer(run, keys)
-    stored = stored_keys(run, keys) + ["robot", "humans", ("next", "humans")]  # counterfactual experience's keys
+    facts = RunFacts.of(run)
+    cfg = env.base_env.config
+    buffer = make_buffer(run.train, facts)
+    stored = facts.replay_keys() + WORLD_KEYS  # counterfactual experience's keys
     rng_before = torch.get_rng_state()
     report = add_demonstrations(buffer, lambda n: make_env(run, split="train", num_envs=n), cfg, run.seed, 5, [8, 32],
                                 stored)

@@ -27,7 +27,8 @@ from crowdrl.training import CheckpointError  # noqa: E402
 from crowdrl.training.checkpoint import config_fingerprint, save_checkpoint  # noqa: E402
 from crowdrl.training.config import to_dict  # noqa: E402
 from crowdrl.training.validation import validate  # noqa: E402
-from crowdrl.training.factories import make_predictor_of  # noqa: E402
+from crowdrl.training.acting import make_predictor_of  # noqa: E402
+from crowdrl.training.facts import RunFacts  # noqa: E402
 from crowdrl.agents import evaluate_spec  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +53,7 @@ def planning_folder(folder: Path, overrides: dict, seed: int = 0) -> Path:
     torch.manual_seed(seed)
     config = to_dict(run)
     payload = {"net": fresh_network(run).state_dict(), "config": config, "frames": 0, "val": {}}
-    predictor = make_predictor_of(run, 0.25)
+    predictor = make_predictor_of(run.planning, RunFacts.of(run))
     if any(True for _ in predictor.parameters()):
         payload["predictor"] = predictor.state_dict()
     save_checkpoint(folder / "checkpoints" / "best.pt", payload, config_fingerprint(config))

@@ -21,7 +21,8 @@ from crowdrl.sim.crowd import obstacle_hit, step_reward
 from crowdrl.sim.kinematics import action_table, decode_action
 from crowdrl.sim.obstacles import nearest_edges, obstacle_segments, point_obstacle_distance
 from crowdrl.training import validate
-from crowdrl.training.factories import ENTITY_OBS_KEYS, OBS_KEYS, make_actor, make_env
+from crowdrl.training.facts import ENTITY_OBS_KEYS, OBS_KEYS
+from crowdrl.training.factories import make_actor, make_env
 
 
 def _room(num_envs: int = 6, steps: int = 3) -> CrowdNavEnv:

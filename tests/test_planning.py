@@ -275,20 +275,22 @@ EXACT = {"logger": {"name": "csv", "progress_bar": False, "render": False}, "pre
 def test_the_td_target_is_the_plain_double_dqn_target():
     """The planner selects actions only: the loss of a sampled batch does not change when the
     predictor (hence every plan) changes."""
-    from crowdrl.training.config import crowd_config
-    from crowdrl.training.factories import obs_keys, stored_keys
+    from crowdrl.training.acting import make_acting
+    from crowdrl.training.facts import RunFacts
     from crowdrl.training.trainer import Trainer
 
     trainer = Trainer(validate(EXACT), Path("/nonexistent-never-written"))
     trainer.buffer.extend(trainer.env.rollout(8, trainer.policy, break_when_any_done=False)
-                          .select(*stored_keys(trainer.run)))
+                          .select(*trainer.stored_keys))
     sample = trainer.buffer.sample()
     for key in ("robot", "humans", ("next", "humans")):
         assert key in sample.keys(True), f"the buffer must keep {key} for the predictor"
     # a fixed crowd: no mask, for the predictor as for the planner acting; a varying one keeps it
     assert "humans_mask" not in sample.keys()
     varying = validate({**EXACT, "env": {"num_humans": 4, "min_humans": 3}})
-    assert "humans_mask" in stored_keys(varying, obs_keys(crowd_config(varying)))
+    facts = RunFacts.of(varying)
+    assert "humans_mask" in facts.replay_keys(make_acting(varying.planning, facts, train=varying.train,
+                                                          encoder=varying.encoder.name, learn=True))
     before = trainer.learner.loss(sample)["loss"]
     with torch.no_grad():
         for p in trainer.predictor.parameters():

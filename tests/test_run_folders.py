@@ -280,16 +280,17 @@ def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
     trainer stores: the networks', the predictor's, the counterfactual experience's)."""
     from crowdrl.models import make_q_network
     from crowdrl.training.resources import transition_bytes
-    from crowdrl.training.config import crowd_config
-    from crowdrl.training.factories import make_buffer, make_env, make_update_part, obs_keys, stored_keys
+    from crowdrl.training.acting import make_acting
+    from crowdrl.training.facts import RunFacts
+    from crowdrl.training.factories import make_buffer, make_env, make_update_part
 
     run = validate(_compose("preset=smoke", "train.num_envs=2", *overrides))
-    keys = obs_keys(crowd_config(run))
+    facts = RunFacts.of(run)
     batch = make_env(run).rollout(3, break_when_any_done=False)
-    buffer = make_buffer(run, keys=keys)
-    part = make_update_part(run, make_q_network(run.encoder.name), keys, crowd_config(run))
-    stored = stored_keys(run, keys)
-    buffer.extend(batch.select(*stored, *[k for k in part.stored_keys() if k not in stored]))
+    buffer = make_buffer(run.train, facts)
+    part = make_update_part(run.train, make_q_network(run.encoder.name), facts)
+    acting = make_acting(run.planning, facts, train=run.train, encoder=run.encoder.name, learn=True)
+    buffer.extend(batch.select(*facts.replay_keys(acting, part)))
     one = buffer.storage[0]
     assert transition_bytes(run) == sum(v.numel() * v.element_size() for v in one.values(True, True))
 

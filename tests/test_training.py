@@ -358,13 +358,15 @@ def test_compiled_acting_equals_eager_and_shares_the_parameters():
     two batch shapes (the states and the look-ahead candidates)."""
     from crowdrl.exploration.noisy import reset_noise
     from crowdrl.training import factories
+    from crowdrl.training.acting import make_predictor_of
+    from crowdrl.training.facts import RunFacts
 
     torch.manual_seed(0)
     runs = {c: validate({"train": {"num_envs": 4, "compile_acting": c}, "exploration": {"name": "noisy"},
                          "planning": {"enabled": True, "predictor": "const_vel"}}) for c in (False, True)}
     env = factories.make_env(runs[False])
     net = fresh_network(runs[False], 81)
-    predictor = factories.make_predictor_of(runs[False], 0.25)
+    predictor = make_predictor_of(runs[False].planning, RunFacts.of(runs[False]))
     actors = {c: factories.make_actor(run, env, net, predictor) for c, run in runs.items()}
     td = env.reset()
     with torch.no_grad():

@@ -288,10 +288,10 @@ def load_trained_predictor(run: RunConfig, data: dict[str, Any], path: Path | st
                            ) -> torch.nn.Module | None:
     """The planner's crowd predictor of a trained checkpoint's payload ``data`` (``None`` without
     planning; a ``const_vel`` predictor has no weights to load)."""
-    from crowdrl.training.config import crowd_config
-    from crowdrl.training.factories import make_predictor_of
+    from crowdrl.training.acting import make_predictor_of
+    from crowdrl.training.facts import RunFacts
 
-    predictor = make_predictor_of(run, crowd_config(run).time_step)
+    predictor = make_predictor_of(run.planning, RunFacts.of(run))
     if predictor is None or not any(True for _ in predictor.parameters()):
         return predictor
     if "predictor" not in data:

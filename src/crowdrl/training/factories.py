@@ -1,6 +1,8 @@
 """Factories of a run, in the TorchRL ``sota-implementations`` style: ``make_env``,
-``make_actor``, ``make_exploration``, ``make_loss``, ``make_learner``, ``make_buffer``,
-``make_learners``, ``make_collector``.
+``make_actor``, ``make_exploration``, ``make_loss``, ``make_buffer``, ``make_update_part``,
+``make_learner``, ``make_collector``. Each takes its config section and the run's
+:class:`~crowdrl.training.facts.RunFacts` (derived once); ``make_env`` and ``make_actor`` take the
+run, as every evaluation calls them.
 
 Training, validation, the final test and ``experiments/evaluate.py`` build their envs with the
 same :func:`make_env` and act with the same actor, so there is one rollout path
@@ -18,54 +20,17 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
-from crowdrl.envs import CrowdNavEnv, RobotCentric
-from crowdrl.evaluation.rollout import crowd_env_of
 from crowdrl.auxiliary import AuxiliaryLearner
+from crowdrl.envs import CrowdNavEnv, RobotCentric
 from crowdrl.exploration import ExplorationStrategy, ReplayContext
-from crowdrl.exploration.intrinsic import seeded_init
-from crowdrl.models import make_q_actor
-from crowdrl.compile import CompiledModule
-from crowdrl.models.predictor import make_predictor
-from crowdrl.policies import OnlinePlanner
-from crowdrl.sim.config import CrowdConfig
-from crowdrl.training.config import RunConfig, crowd_config, sees_obstacles
+from crowdrl.training.acting import GreedyActing, make_acting
+from crowdrl.training.config import RunConfig, TrainConfig, crowd_config, sees_obstacles
+from crowdrl.training.counterfactual import CounterfactualExperience
+from crowdrl.training.facts import RunFacts
 from crowdrl.training.learner import D3QNLearner
 from crowdrl.training.loss import D3QNLoss
-from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.nstep import NStepReturn
 from crowdrl.training.parts import ReplayOnly, UpdatePart
-from crowdrl.training.predictor_learner import PredictorLearner
-from crowdrl.training.variants import successor_key
-
-OBS_KEYS = ("robot_rc", "humans_rc")
-MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
-# what a network trained among obstacles reads: the humans and the observed obstacle edges as tokens
-ENTITY_OBS_KEYS = ("robot_rc", *RobotCentric.ENTITY_KEYS)
-# what the learned crowd predictor trains on: world-frame states and the real next human states (one
-# step later: the n-step transform moves only the observation keys), plus the humans' mask where the
-# crowd size varies (``obs_keys``), as the planner reads it when acting
-PREDICTOR_KEYS = ["robot", "humans", ("next", "humans")]
-
-
-def obs_keys(cfg: CrowdConfig, obstacles: bool | None = None) -> tuple[str, ...]:
-    """What the networks read from an env of ``cfg``: the robot-centric states, and the humans' mask
-    when the crowd size varies (a fixed crowd has every human present); with ``obstacles`` (default:
-    whether ``cfg`` has them; a run's networks: :func:`~crowdrl.training.config.sees_obstacles`) the
-    entity tokens of humans and obstacle edges, with their mask, in place of the humans."""
-    if obstacles is None:
-        obstacles = cfg.obstacles_shape[0] > 0
-    if obstacles:
-        return ENTITY_OBS_KEYS
-    return (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
-
-
-def stored_keys(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS) -> list:
-    """The keys of a collected batch that the replay buffer keeps for ``run`` whose networks read
-    ``keys`` (the n-step transform adds steps_to_next_obs; the learned predictor adds its own)."""
-    out = [*keys, "action", *[("next", k) for k in (*keys, "reward", "done", "terminated")]]
-    if run.planning.enabled and run.planning.predictor == "learned":
-        out += [k for k in PREDICTOR_KEYS if k not in out]
-    return out
 
 
 def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = None, seed: int | None = None,
@@ -86,34 +51,15 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
 
 def make_actor(run: RunConfig, env: EnvBase, net: torch.nn.Module,
                predictor: torch.nn.Module | None = None) -> TensorDictModuleBase:
-    """The greedy Q actor (``QValueActor``) of ``net`` for ``env``'s action spec (reading the
-    humans' mask when ``env``'s crowd size varies: one network serves any crowd), or, with
-    ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and ``predictor``
-    (which reads the mask in the same case). With ``train.compile_acting`` the actor calls ``net`` (and the predictor)
-    through ``torch.compile`` (:class:`~crowdrl.compile.CompiledModule`, same
-    parameters)."""
-    crowd = crowd_env_of(env).config
-    if run.train.compile_acting:
-        net = CompiledModule(net, what="the acting Q network")
-        if predictor is not None:
-            predictor = CompiledModule(predictor, what="the planner's crowd predictor")
-    if not run.planning.enabled:
-        return make_q_actor(run.encoder.name, env.action_spec, in_keys=obs_keys(crowd, sees_obstacles(run)), net=net)
-    if predictor is None:
+    """The actor of a trained ``net`` for ``env``, as training acts (:func:`~crowdrl.training.acting.make_acting`):
+    the greedy Q actor (``QValueActor``, reading the humans' mask when ``env``'s crowd size varies: one network
+    serves any crowd), or, with ``planning.enabled``, the :class:`~crowdrl.policies.OnlinePlanner` of ``net`` and
+    its crowd ``predictor`` (required then). With ``train.compile_acting`` the actor calls ``net`` (and the
+    predictor) through ``torch.compile``."""
+    if run.planning.enabled and predictor is None:
         raise ValueError("planning.enabled: the planner needs its crowd predictor (make_predictor_of)")
-    p = run.planning
-    return OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth, width=p.width,
-                         mask_key=MASK_KEY if crowd.variable_crowd else None, entities=sees_obstacles(run),
-                         safety_horizon=p.safety_horizon)
-
-
-def make_predictor_of(run: RunConfig, time_step: float) -> torch.nn.Module | None:
-    """The planner's crowd predictor (``None`` without planning), initialised from a seed derived
-    from the run seed: the global RNG, hence the Q network and everything after, is untouched."""
-    if not run.planning.enabled:
-        return None
-    with seeded_init(2_000_003 * (run.seed + 1)):
-        return make_predictor(run.planning.predictor, time_step).to(run.device)
+    return make_acting(run.planning, RunFacts.of(run), train=run.train, encoder=run.encoder.name,
+                       predictor=predictor).actor(net, env)
 
 
 def make_exploration(env: EnvBase, actor: TensorDictModuleBase, strategy: ExplorationStrategy) -> TensorDictSequential:
@@ -127,76 +73,57 @@ def make_exploration(env: EnvBase, actor: TensorDictModuleBase, strategy: Explor
     return strategy.policy(actor, env.action_spec)
 
 
-def make_loss(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...] = OBS_KEYS) -> D3QNLoss:
-    """Double dueling DQN loss on n-step transitions of ``keys``, with its target network."""
-    t = run.train
-    return D3QNLoss(net, keys, gamma=t.gamma, double=True, compile=t.compile_loss, huber_delta=t.huber_delta)
+def make_loss(train: TrainConfig, net: torch.nn.Module, facts: RunFacts) -> D3QNLoss:
+    """Double dueling DQN loss on n-step transitions of the networks' observation keys, with its target network."""
+    return D3QNLoss(net, facts.obs_keys, gamma=train.gamma, double=True, compile=train.compile_loss,
+                    huber_delta=train.huber_delta)
 
 
-def make_optimizer(run: RunConfig, net: torch.nn.Module, lr: float | None = None) -> torch.optim.Optimizer:
-    """Adam at ``lr`` (default ``train.lr``); fused (one kernel for all parameters, cheaper than
-    the per-tensor loop on CPU; docs/benchmarks.md): the Q network's and the crowd predictor's."""
-    return torch.optim.Adam(net.parameters(), lr=run.train.lr if lr is None else lr, fused=True)
-
-
-def make_buffer(run: RunConfig, keys: tuple[str, ...] = OBS_KEYS, strategy: ExplorationStrategy | None = None,
-                context: ReplayContext | None = None) -> TensorDictReplayBuffer:
-    """The replay buffer of observations ``keys``: n-step returns when a batch is written, then
-    what the exploration ``strategy`` does to a sampled batch (ICM/RE3: the intrinsic bonus), its
-    transform built from ``context`` (:func:`~crowdrl.training.variants.replay_context`)."""
-    t = run.train
-    transform: Transform = NStepReturn(t.n_step, t.gamma, keys,
-                                       one_step_key=successor_key(run, strategy) if strategy is not None else None)
+def make_buffer(train: TrainConfig, facts: RunFacts, strategy: ExplorationStrategy | None = None,
+                context: ReplayContext | None = None, one_step_key: str | None = None) -> TensorDictReplayBuffer:
+    """The replay buffer of the networks' observations: n-step returns when a batch is written (keeping
+    ``s_{t+1}`` under ``one_step_key`` too, :func:`~crowdrl.training.variants.successor_key`), then what the
+    exploration ``strategy`` does to a sampled batch (ICM/RE3: the intrinsic bonus), its transform built from
+    ``context`` (:func:`~crowdrl.training.variants.replay_context`)."""
+    transform: Transform = NStepReturn(train.n_step, train.gamma, facts.obs_keys, one_step_key=one_step_key)
     extra = strategy.replay_transform(context) if strategy is not None else None
     if extra is not None:
         transform = Compose(transform, extra)
-    return TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_size, device=run.device),
-                                  batch_size=t.batch_size, transform=transform)
+    return TensorDictReplayBuffer(storage=LazyTensorStorage(train.buffer_size, device=facts.device),
+                                  batch_size=train.batch_size, transform=transform)
 
 
-def make_learners(run: RunConfig, predictor: torch.nn.Module | None, keys: tuple[str, ...],
-                  strategy: ExplorationStrategy | None = None) -> list[AuxiliaryLearner]:
-    """The models trained beside the Q network on each sampled batch, in the order they step: the
-    exploration ``strategy``'s (ICM's forward and inverse models), then the planner's crowd
-    ``predictor`` when it has weights (its own Adam at ``planning.lr``; ``keys``: whether it reads
-    the humans' mask)."""
-    learners = list(strategy.learners()) if strategy is not None else []
-    if predictor is not None and any(True for _ in predictor.parameters()):
-        learners.append(PredictorLearner(predictor, make_optimizer(run, predictor, lr=run.planning.lr),
-                                         compile=run.train.compile_loss, mask_key=MASK_KEY if MASK_KEY in keys else None))
-    return learners
-
-
-def make_update_part(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
+def make_update_part(train: TrainConfig, net: torch.nn.Module, facts: RunFacts,
                      reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None,
                      one_step_key: str | None = None) -> UpdatePart:
     """The gradient steps of one update (:mod:`crowdrl.training.parts`): the sampled batch alone, or with
     ``train.counterfactual.mode`` its counterfactual transitions too (``reward_bonus``, the exploration
     strategy's, added to them; it reads their successor under ``one_step_key`` where :func:`make_buffer` stores
     it, :func:`~crowdrl.training.variants.successor_key`)."""
-    c = run.train.counterfactual
+    c = train.counterfactual
     if c.mode == "off":
         return ReplayOnly()
-    return CounterfactualExperience(crowd, net, keys, mode=c.mode, actions=c.actions, k=c.k, weight=c.weight,
-                                    entities=sees_obstacles(run), seed=3_000_017 * (run.seed + 1),
+    return CounterfactualExperience(facts.crowd, net, facts.obs_keys, mode=c.mode, actions=c.actions, k=c.k,
+                                    weight=c.weight, entities=facts.entities, seed=3_000_017 * (facts.seed + 1),
                                     reward_bonus=reward_bonus, one_step_key=one_step_key)
 
 
-def make_learner(run: RunConfig, net: torch.nn.Module, keys: tuple[str, ...], crowd: CrowdConfig,
-                 strategy: ExplorationStrategy, predictor: torch.nn.Module | None) -> D3QNLearner:
-    """The Q network's learner (:class:`~crowdrl.training.learner.D3QNLearner`): the loss on ``keys``, Adam,
-    the update part, the auxiliary learners (the ``strategy``'s, the planner's ``predictor``), the
-    strategy's hook before each update, the gradient clip, the target rule (Polyak ``train.target_tau`` < 1,
-    else a hard copy every ``train.target_update_frames`` frames of updates) and the learning-rate schedule."""
-    t = run.train
-    loss = make_loss(run, net, keys)
-    optimizer = make_optimizer(run, net)
-    learners = make_learners(run, predictor, keys, strategy)
-    part = make_update_part(run, net, keys, crowd, strategy.reward_bonus(), successor_key(run, strategy))
+def make_learner(train: TrainConfig, net: torch.nn.Module, facts: RunFacts, strategy: ExplorationStrategy,
+                 acting: GreedyActing, one_step_key: str | None = None) -> D3QNLearner:
+    """The Q network's learner (:class:`~crowdrl.training.learner.D3QNLearner`): the loss, Adam (fused: one
+    kernel for all parameters, cheaper than the per-tensor loop on CPU; docs/benchmarks.md), the update part,
+    the auxiliary learners in the order they step (the ``strategy``'s, then the ``acting`` part's: the
+    planner's crowd predictor), the strategy's hook before each update, the gradient clip, the target rule
+    (Polyak ``train.target_tau`` < 1, else a hard copy every ``train.target_update_frames`` frames of updates)
+    and the learning-rate schedule. ``one_step_key``: where the buffer keeps ``s_{t+1}`` for the bonus."""
+    loss = make_loss(train, net, facts)
+    optimizer = torch.optim.Adam(net.parameters(), lr=train.lr, fused=True)
+    learners: list[AuxiliaryLearner] = [*strategy.learners(), *acting.learners()]
+    part = make_update_part(train, net, facts, strategy.reward_bonus(), one_step_key)
     return D3QNLearner(loss, optimizer, part, learners, before_update=strategy.before_update,
-                       grad_clip_norm=t.grad_clip_norm, target_tau=t.target_tau,
-                       updates_per_copy=max(1, round(t.target_update_frames * max(t.updates_per_frame, 1e-9))),
-                       lr=None if t.lr_end is None else (t.lr, t.lr_end, t.total_frames))
+                       grad_clip_norm=train.grad_clip_norm, target_tau=train.target_tau,
+                       updates_per_copy=max(1, round(train.target_update_frames * max(train.updates_per_frame, 1e-9))),
+                       lr=None if train.lr_end is None else (train.lr, train.lr_end, train.total_frames))
 
 
 def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
@@ -220,13 +147,11 @@ def buffer_state_dict(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
     return state
 
 
-def make_collector(run: RunConfig, env: EnvBase, policy: TensorDictModule) -> Collector:
+def make_collector(train: TrainConfig, env: EnvBase, policy: TensorDictModule, device: str) -> Collector:
     """A single-process collector of ``num_envs x steps_per_batch`` frames per batch."""
-    t = run.train
-    return Collector(env, policy, frames_per_batch=t.num_envs * t.steps_per_batch, total_frames=-1,
-                     device=run.device, auto_register_policy_transforms=False)
+    return Collector(env, policy, frames_per_batch=train.num_envs * train.steps_per_batch, total_frames=-1,
+                     device=device, auto_register_policy_transforms=False)
 
 
-__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "PREDICTOR_KEYS", "buffer_state_dict",
-           "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration", "make_learner", "make_learners",
-           "make_loss", "make_optimizer", "make_predictor_of", "make_update_part", "obs_keys", "stored_keys"]
+__all__ = ["buffer_state_dict", "make_actor", "make_buffer", "make_collector", "make_env", "make_exploration",
+           "make_learner", "make_loss", "make_update_part"]

@@ -39,7 +39,7 @@ def planner_bytes(run: RunConfig, batch: int | None = None) -> int:
 
 
 def transition_bytes(run: RunConfig) -> int:
-    """Bytes of one transition in the replay buffer (``factories.stored_keys``): the robot-centric
+    """Bytes of one transition in the replay buffer (``RunFacts.replay_keys``): the robot-centric
     state and successor (float32, plus the humans' bool mask when the crowd size varies), the
     action, ``index`` and ``steps_to_next_obs`` (int64), the reward (float32), ``done`` and
     ``terminated`` (bool), and with the learned predictor the world-frame state and next humans."""

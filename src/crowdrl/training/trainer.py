@@ -33,11 +33,13 @@ from crowdrl.exploration import make_strategy
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import (CheckpointError, config_fingerprint, load_checkpoint, merge_payload,
                                         restore_rng, rng_state, save_checkpoint)
-from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
+from crowdrl.training.acting import make_acting
+from crowdrl.training.config import RunConfig, to_dict
 from crowdrl.training.counters import Counters
 from crowdrl.training.demonstrations import add_demonstrations
-from crowdrl.training.factories import (buffer_state_dict, make_actor, make_buffer, make_collector, make_env,
-                                        make_exploration, make_learner, make_predictor_of, obs_keys, stored_keys)
+from crowdrl.training.facts import RunFacts
+from crowdrl.training.factories import (buffer_state_dict, make_buffer, make_collector, make_env, make_exploration,
+                                        make_learner)
 from crowdrl.training.learner import NonFiniteError
 from crowdrl.training.scalars import ScalarLog, WandbMirror, progress_bar
 from crowdrl.training.variants import make_network, replay_context, successor_key
@@ -88,29 +90,29 @@ class Trainer:
         torch.set_num_threads(run.threads)
         torch.manual_seed(run.seed)
         t = run.train
+        self.facts = facts = RunFacts.of(run)  # the crowd, the observation keys, obstacles seen, the action count
         self.env = make_env(run, split="train")
         self.val_env = make_env(run, split="val", num_envs=t.val_episodes)  # same maker, held-out stream
-        self.crowd_cfg = self.env.base_env.config
-        # + the humans' mask when the crowd size varies; entity tokens among obstacles
-        self.obs_keys = obs_keys(self.crowd_cfg, sees_obstacles(run))
-        self.stored_keys = stored_keys(run, self.obs_keys)
-        num_actions = int(self.env.action_spec.n)
+        self.crowd_cfg = facts.crowd
         # the exploration strategy: its network surgery, acting policy, replay transform, learners
         self.strategy = make_strategy(run.exploration)
-        self.net = make_network(run, num_actions, strategy=self.strategy).to(run.device)
-        # online planning: the crowd predictor (seeded apart from the global RNG)
-        self.predictor = make_predictor_of(run, self.crowd_cfg.time_step)
-        self.actor = make_actor(run, self.env, self.net, self.predictor)
+        self.net = make_network(run, facts.num_actions, strategy=self.strategy).to(run.device)
+        # how it acts: greedy on Q, or the online planner with its crowd predictor (seeded apart from the global RNG)
+        self.acting = make_acting(run.planning, facts, train=t, encoder=run.encoder.name, learn=True)
+        self.predictor = self.acting.predictor
+        self.actor = self.acting.actor(self.net, self.env)
         self.policy = make_exploration(self.env, self.actor, self.strategy)
         self.counters = Counters()
         # the strategy's replay transform (ICM / RE3: their own seeds, the global RNG is untouched)
-        self.buffer = make_buffer(run, self.obs_keys, self.strategy,
-                                  replay_context(run, list(self.obs_keys), num_actions, lambda: self.counters.frames,
-                                                 successor_key(run, self.strategy)))
+        successor = successor_key(run, self.strategy)
+        self.buffer = make_buffer(t, facts, self.strategy,
+                                  replay_context(run, list(facts.obs_keys), facts.num_actions,
+                                                 lambda: self.counters.frames, successor), successor)
         # the Q network's update: loss, optimiser, the update part (counterfactual experience), the auxiliary
         # learners (the strategy's, the crowd predictor), the target rule and the learning-rate schedule
-        self.learner = make_learner(run, self.net, self.obs_keys, self.crowd_cfg, self.strategy, self.predictor)
-        self.stored_keys += [k for k in self.learner.part.stored_keys() if k not in self.stored_keys]
+        self.learner = make_learner(t, self.net, facts, self.strategy, self.acting, successor)
+        # what the replay buffer keeps: the transitions, and what the predictor and the update part read
+        self.stored_keys = facts.replay_keys(self.acting, self.learner.part)
         self.log = None
         self.wandb = None
         self._restored: dict[str, Any] | None = None
@@ -200,7 +202,7 @@ class Trainer:
             return summary
         if resume_data is None and t.demonstrations.cases > 0:  # a fresh run: once, before the first batch
             self._add_demonstrations()
-        collector = make_collector(run, self.env, self.policy)  # its first reset continues restored episodes
+        collector = make_collector(t, self.env, self.policy, run.device)  # its first reset continues restored episodes
         if resume_data:  # the collector's set-up may draw random numbers: the stream continues from here
             restore_rng(resume_data)
         bar = progress_bar(t.total_frames, c.frames) if run.logger.progress_bar else None

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.schema import SchemaError, check_bools
-from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS
+from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.rng import MAX_SEED
 from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, LOGGERS, WANDB_MODES, ConfigError,
@@ -72,7 +72,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     one_of(e.orca_backend, "env.orca_backend", ORCA_BACKENDS)
     try:  # the obstacle geometry, the lidar, the humans' model: CrowdConfig's checks, whose messages start with the key
         # the largest crowd too: an obstacle scenario refuses one its geometry cannot spawn reliably
-        crowd_config(run)
+        crowd = crowd_config(run)  # built once here: the checks below read it
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
@@ -96,8 +96,8 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
         value = getattr(t, key)
         check(value is None or value > 0, f"train.{key}", f"must be > 0 or null, got {value}")
     check(t.lr_end is None or 0 <= t.lr_end <= t.lr, "train.lr_end", f"must lie in [0, train.lr] or be null, got {t.lr_end}")
-    check_counterfactual(run)
-    check_demonstrations(run)
+    check_counterfactual(run, crowd)
+    check_demonstrations(run, crowd)
     p = run.planning
     check(p.depth >= 1, "planning.depth", f"must be >= 1, got {p.depth}")
     check(1 <= p.width <= NUM_ACTIONS, "planning.width", f"must lie in 1..{NUM_ACTIONS}, got {p.width}")
@@ -145,16 +145,15 @@ def check_exploration(run: RunConfig) -> None:
         raise ConfigError(f"exploration.{exc}") from None
 
 
-def check_counterfactual(run: RunConfig) -> None:
-    """``train.counterfactual``'s keys; it needs humans that ignore the robot (their real next state is
-    then the next state after any action) and the unicycle's discrete actions."""
+def check_counterfactual(run: RunConfig, humans: CrowdConfig) -> None:
+    """``train.counterfactual``'s keys; it needs ``humans`` (the run's crowd config) that ignore the robot
+    (their real next state is then the next state after any action) and the unicycle's discrete actions."""
     c = run.train.counterfactual
     one_of(c.mode, "train.counterfactual.mode", COUNTERFACTUAL_MODES)
     one_of(c.actions, "train.counterfactual.actions", COUNTERFACTUAL_ACTIONS)
     check(isinstance(c.k, int) and 1 <= c.k <= NUM_ACTIONS, "train.counterfactual.k",
           f"must be an integer in 1..{NUM_ACTIONS}, got {c.k!r}")
     check(0 <= c.weight <= 1, "train.counterfactual.weight", f"must lie in [0, 1], got {c.weight}")
-    humans = crowd_config(run)
     if c.mode != "off" and humans.humans_react_to_robot:
         who = " and ".join(m for m in humans.human_models_present if m != "linear")
         raise ConfigError(f"train.counterfactual.mode: counterfactual experience replays the humans' real next state "
@@ -166,11 +165,11 @@ def check_counterfactual(run: RunConfig) -> None:
 MAX_DEMO_WIDTH = 2048  # the ceiling's widest default beam: wider ones hold chunk x width x 81 children a depth
 
 
-def check_demonstrations(run: RunConfig) -> None:
+def check_demonstrations(run: RunConfig, crowd: CrowdConfig) -> None:
     """``train.demonstrations``: a case count in ``0..train.buffer_size`` (0: off; a case stores at least one
     transition, so more cases than slots would overwrite each other), increasing beam widths in
     ``1..MAX_DEMO_WIDTH``; on, it needs humans that ignore the robot (the oracle knows a case's crowd in
-    advance only then)."""
+    advance only then; ``crowd``: the run's crowd config)."""
     d, t = run.train.demonstrations, run.train
     check(isinstance(d.cases, int) and not isinstance(d.cases, bool) and 0 <= d.cases <= t.buffer_size,
           "train.demonstrations.cases", f"must be an integer in 0..train.buffer_size ({t.buffer_size}; 0: off), "
@@ -181,7 +180,7 @@ def check_demonstrations(run: RunConfig) -> None:
           f"must be a non-empty list of integers in 1..{MAX_DEMO_WIDTH}, got {widths!r}")
     check(widths == sorted(set(widths)), "train.demonstrations.widths", f"must increase, got {widths!r}")
     if d.cases > 0:
-        check(not crowd_config(run).humans_react_to_robot, "train.demonstrations.cases",
+        check(not crowd.humans_react_to_robot, "train.demonstrations.cases",
               "the oracle solves a case only when its crowd is known in advance, i.e. the humans ignore the robot; "
               "set env.robot_visible=false or train.demonstrations.cases=0")
 
