@@ -7,6 +7,7 @@
     python experiments/bench_train.py --encoders sgd3qn sarl lstm_rl mp_rgl   # per-update cost of each encoder
     python experiments/bench_train.py --planning --counterfactual-k 0 5 81   # counterfactual experience's cost
     python experiments/bench_train.py --counterfactual-k 0 5 --counterfactual-modes second_update merged
+    python experiments/bench_train.py --scenario corridor --lidar off mlp conv   # what reading the scan costs
 
 One row per (encoder, exploration, loss); ``--json`` prints ``{"meta": ..., "rows": [...]}`` (the
 shared format of ``benchkit.py``).
@@ -60,7 +61,7 @@ def counterfactual_of(k: int, mode: str = "second_update") -> dict:
 
 
 def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Namespace,
-            counterfactual_k: int = 0, counterfactual_mode: str = "second_update") -> tuple[dict, tuple]:
+            counterfactual_k: int = 0, counterfactual_mode: str = "second_update", lidar: str = "off") -> tuple[dict, tuple]:
     """Collection rate and per-update breakdown (ms) for one exploration variant, and the
     (loss, sample) to count its matmul work with once every variant is timed."""
     from torchrl.collectors import Collector
@@ -69,8 +70,11 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     from crowdrl.training.trainer import Trainer
 
     torch.manual_seed(0)
-    run = validate({"logger": {"name": "csv"}, "encoder": {"name": encoder}, "exploration": {"name": exploration},
-                    "threads": args.threads, "env": {"orca_backend": args.orca_backend},
+    # every row's env scans when one row's network reads the scan: the rows differ by the network alone
+    rays = args.lidar_rays if any(kind != "off" for kind in args.lidar) else 0
+    run = validate({"logger": {"name": "csv"}, "encoder": {"name": encoder, "lidar": lidar},
+                    "exploration": {"name": exploration}, "threads": args.threads,
+                    "env": {"orca_backend": args.orca_backend, "scenario": args.scenario, "lidar_rays": rays},
                     "train": {"num_envs": args.num_envs, "steps_per_batch": 8,
                                                       "compile_loss": loss_backend == "compiled",
                                                       "compile_acting": args.acting == "compiled",
@@ -127,7 +131,8 @@ def measure(encoder: str, exploration: str, loss_backend: str, args: argparse.Na
     hours = collect_h + BUDGET_UPDATES * update_ms / 1e3 / 3600
     # what one update may cost for collection + updates to fit in one hour at this collection rate
     update_ms_for_1h = max(0.0, 1.0 - collect_h) * 3600 * 1e3 / BUDGET_UPDATES
-    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "counterfactual_k": counterfactual_k,
+    return {"encoder": encoder, "exploration": exploration, "loss": loss_backend, "lidar": lidar,
+            "counterfactual_k": counterfactual_k,
             "counterfactual_mode": counterfactual_mode if counterfactual_k else "off",
             "collect_frames_per_s": frames_per_s,
             "update_ms": update_ms,
@@ -158,6 +163,10 @@ def main(argv: list[str] | None = None) -> dict:
                    help="counterfactual transitions per sampled state: 0 off (default), 1..80 the top k by Q, 81 all")
     p.add_argument("--counterfactual-modes", nargs="+", default=["second_update"], choices=["second_update", "merged"],
                    help="train.counterfactual.mode of each k > 0 (one row each; default second_update)")
+    p.add_argument("--scenario", default="circle", help="env.scenario of every row (default circle)")
+    p.add_argument("--lidar", nargs="+", default=["off"], choices=["off", "mlp", "conv"],
+                   help="encoder.lidar of each row (default off); any other than off: every row's env scans")
+    p.add_argument("--lidar-rays", type=int, default=72, help="env.lidar_rays when a row reads the scan (default 72)")
     add_json_argument(p)
     args = p.parse_args(argv)
     if min(args.threads, args.num_envs, args.updates, args.batches) < 1:
@@ -176,9 +185,9 @@ def main(argv: list[str] | None = None) -> dict:
     unknown = sorted(set(args.encoders) - set(ENCODERS))
     if unknown:
         p.error(f"--encoders: unknown {unknown}; allowed: {sorted(ENCODERS)}")
-    measured = [measure(e, x, backend, args, k, mode) for e in args.encoders for x in args.explorations
+    measured = [measure(e, x, backend, args, k, mode, lidar) for e in args.encoders for x in args.explorations
                 for backend in args.loss for k in args.counterfactual_k
-                for mode in (args.counterfactual_modes if k else ["second_update"])]
+                for mode in (args.counterfactual_modes if k else ["second_update"]) for lidar in args.lidar]
     results = [r for r, _ in measured]
     for r, probe in measured:  # after every timing (see matmul_mflop_per_update)
         r["matmul_mflop_per_update"] = mflop = matmul_mflop_per_update(*probe)
@@ -190,10 +199,12 @@ def main(argv: list[str] | None = None) -> dict:
         r["update_cost_vs_first"] = r["update_ms"] / base
     meta = {"threads": args.threads, "num_envs": args.num_envs, "encoder": args.encoders[0], "encoders": args.encoders,
             "batch_size": 100, "counterfactual_k": args.counterfactual_k, "counterfactual_modes": args.counterfactual_modes,
-            "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning}
+            "orca_backend": args.orca_backend, "acting": args.acting, "planning": args.planning,
+            "scenario": args.scenario, "lidar_rays": args.lidar_rays if any(k != "off" for k in args.lidar) else 0}
     first = results[0]
     part = lambda k: Column(lambda r: r["update_breakdown_ms"][k], f"{k} ms", ".2f")  # noqa: E731
-    columns = [Column("encoder"), Column("exploration"), Column("loss"), Column("counterfactual_k", "counterfactual k"),
+    columns = [Column("encoder"), Column("exploration"), Column("loss"), Column("lidar"),
+               Column("counterfactual_k", "counterfactual k"),
                Column("counterfactual_mode", "mode"),
                Column("collect_frames_per_s", "collect frames/s", ",.0f"), Column("update_ms", "update ms", ".2f"),
                Column("updates_per_s", "updates/s", ".1f"), part("sample"), part("loss_and_grad"), part("optimizer"),

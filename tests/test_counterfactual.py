@@ -29,6 +29,9 @@ CASES = [  # scenario, crowd, steps: fixed and variable crowds, open space and w
     # a mixed crowd: the restored env keeps each human's model
     ("square", {"num_humans": 5, "min_humans": 2, "human_model": "mixed", "social_force_share": 0.4,
                 "linear_share": 0.3}, 60),
+    # a network that reads the lidar scan (encoder.lidar): the scan from the new pose, walls and a varying crowd
+    ("corridor", {"num_humans": 4, "lidar_rays": 36}, 60),
+    ("square", {"num_humans": 4, "min_humans": 1, "lidar_rays": 24}, 60),
 ]
 
 
@@ -50,7 +53,8 @@ def _toward_goal(robot: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("scenario, crowd, steps", CASES,
-                         ids=[c[0] + ("-" + c[1]["human_model"] if "human_model" in c[1] else "") for c in CASES])
+                         ids=[c[0] + ("-" + c[1]["human_model"] if "human_model" in c[1] else "")
+                              + ("-lidar" if "lidar_rays" in c[1] else "") for c in CASES])
 def test_counterfactual_transitions_equal_the_env_stepping_each_alternative(scenario, crowd, steps):
     """Restore the env before a step, take each alternative action: reward, termination and every
     observation the network reads equal what the one-step model built from the real transition."""
@@ -58,7 +62,7 @@ def test_counterfactual_transitions_equal_the_env_stepping_each_alternative(scen
     B, k = 16, 4
     env = _env(scenario, crowd, B)
     cfg = env.base_env.config
-    keys = obs_keys(cfg)
+    keys = obs_keys(cfg, lidar=cfg.lidar_rays > 0)
     part = CounterfactualExperience(cfg, make_q_network("sarl"), keys, actions="random", k=k,
                                     entities=cfg.obstacles_shape[0] > 0)
     gen = torch.Generator().manual_seed(1)

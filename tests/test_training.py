@@ -327,7 +327,8 @@ def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):
 def test_bench_train_reports_rates_and_ratios():
     """`experiments/bench_train.py` runs on a tiny budget and reports consistent figures (its --json)."""
     cmd = [sys.executable, str(ROOT / "experiments" / "bench_train.py"), "--updates", "2", "--batches", "1",
-           "--num-envs", "4", "--warmup-frames", "128", "--loss", "eager", "eager", "--json"]
+           "--num-envs", "4", "--warmup-frames", "128", "--loss", "eager", "--lidar", "off", "conv", "--lidar-rays", "24",
+           "--json"]
     # torchrl logs INFO lines to stdout: keep it to the JSON document
     proc = subprocess.run(cmd, env={**_env(), "RL_LOGGING_LEVEL": "WARNING"}, capture_output=True, text=True,
                           timeout=300)
@@ -339,6 +340,8 @@ def test_bench_train_reports_rates_and_ratios():
         assert r["loss"] == "eager" and r["collect_frames_per_s"] > 0 and r["update_ms"] > 0
         assert r["update_ms"] == pytest.approx(sum(r["update_breakdown_ms"].values()))
         assert r["paper_budget_hours"] > 500_000 * r["update_ms"] / 1e3 / 3600
+    assert (first["lidar"], second["lidar"], out["meta"]["lidar_rays"]) == ("off", "conv", 24)
+    assert second["matmul_mflop_per_update"] > first["matmul_mflop_per_update"]  # the scan's network adds work
     assert first["update_cost_vs_first"] == 1.0
     assert second["update_cost_vs_first"] == pytest.approx(second["update_ms"] / first["update_ms"])
     # matmul MACs per sample, by hand from the architecture (N = 10 humans, 11 nodes):

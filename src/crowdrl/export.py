@@ -158,7 +158,8 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     1e-4, or a planner action differing where the scores do not tie within 1e-4, raises ``RuntimeError``.
     Raises :class:`~crowdrl.training.CheckpointError` naming the file for a missing, corrupt or unsafe
     checkpoint, ``ValueError`` naming the key for a path that cannot be written (``out``), bad planner
-    settings (``planning_<key>``) or a planner the export cannot hold (trained among obstacles).
+    settings (``planning_<key>``), a planner the export cannot hold (trained among obstacles) or a network that
+    reads the lidar scan (``encoder.lidar``).
     """
     try:
         import onnx
@@ -172,6 +173,9 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     acting = {k: v for k, v in (planning or {}).items() if v is not None}
     if acting:
         run = act_with(run, acting, prefix="planning_")
+    if run.encoder.lidar != "off":
+        raise ValueError(f"encoder.lidar: {ckpt}'s network reads the lidar scan ({run.encoder.lidar}), which the "
+                         f"exported layouts ({', '.join(LAYOUTS)}) do not take yet; evaluate the checkpoint itself")
     entities = sees_obstacles(run)
     plans = run.planning.enabled
     if plans and entities:

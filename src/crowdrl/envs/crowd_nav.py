@@ -43,8 +43,8 @@ class CrowdNavEnv(EnvBase):
     RVO2 polygons of :class:`~crowdrl.sim.state.CrowdState`; the ORCA baseline reads them). With
     ``config.lidar_rays = R > 0`` (every scenario) it adds ``"lidar"`` ``[B, R]``, the robot's 2-D scan
     (:func:`crowdrl.sim.lidar.observe_lidar`: ray 0 along the heading, counter-clockwise, against the
-    obstacle edges and the present humans' discs, clipped at ``config.lidar_range``; no network of
-    crowdrl reads it). Actions are indices into the 81-action
+    obstacle edges and the present humans' discs, clipped at ``config.lidar_range``; a network reads it
+    with ``encoder.lidar``, :mod:`crowdrl.models.scan`). Actions are indices into the 81-action
     unicycle table, or, with ``robot_kinematics="holonomic"``, velocities ``[B, 2]`` clipped to
     ``v_pref`` (:func:`crowdrl.sim.kinematics.decode_action`). Collision and goal terminate;
     the time limit truncates.

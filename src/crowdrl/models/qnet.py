@@ -11,12 +11,15 @@ from torchrl.modules import QValueActor
 
 from crowdrl.models.dueling import DuelingHead
 from crowdrl.models.registry import make_encoder
+from crowdrl.models.scan import ScanTokens, with_scan_tokens
 
 
 class CrowdQNetwork(nn.Module):
-    """``(robot_rc [*, 9], humans_rc [*, N, 5], humans_mask [*, N]?) -> Q [*, num_actions]``: ``head(encoder(...))``."""
+    """``(robot_rc [*, 9], humans_rc [*, N, 5], humans_mask [*, N]?, lidar [*, R]?) -> Q [*, num_actions]``:
+    ``head(encoder(...))``; with ``scan`` (:class:`~crowdrl.models.scan.ScanTokens`) the last input is the lidar
+    scan, whose tokens the encoder reads beside the humans' (as present tokens)."""
 
-    def __init__(self, encoder: nn.Module, head: nn.Module) -> None:
+    def __init__(self, encoder: nn.Module, head: nn.Module, scan: ScanTokens | None = None) -> None:
         super().__init__()
         enc_dim = getattr(encoder, "embedding_dim", None)
         head_dim = getattr(head, "embedding_dim", None)
@@ -24,21 +27,38 @@ class CrowdQNetwork(nn.Module):
             raise ValueError(f"encoder embedding_dim {enc_dim} != head embedding_dim {head_dim}")
         self.encoder = encoder
         self.head = head
+        self.scan = scan
 
-    def forward(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor | None = None) -> Tensor:
-        """``humans_mask [*, N]`` (bool, True = present) is passed to the encoder when given."""
-        if humans_mask is None:
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor, *rest: Tensor) -> Tensor:
+        """``rest``: ``humans_mask [*, N]`` (bool, True = present), passed to the encoder when given, then (with a
+        scan network) ``lidar [*, R]``."""
+        if self.scan is not None:
+            if not rest:
+                raise ValueError("this Q network reads the lidar scan: call it as net(robot_rc, humans_rc[, humans_mask], lidar)")
+            *rest, lidar = rest
+            humans_rc, mask = with_scan_tokens(humans_rc, rest[0] if rest else None, self.scan(lidar))
+            return self.head(self.encoder(robot_rc, humans_rc, mask))
+        if len(rest) > 1:
+            raise ValueError(f"net(robot_rc, humans_rc[, humans_mask]): got {2 + len(rest)} inputs; this network reads no scan")
+        if not rest or rest[0] is None:
             return self.head(self.encoder(robot_rc, humans_rc))
-        return self.head(self.encoder(robot_rc, humans_rc, humans_mask))
+        return self.head(self.encoder(robot_rc, humans_rc, rest[0]))
 
 
 def make_q_network(encoder_name: str = "sgd3qn", num_actions: int = 81, hidden: int = 128,
-                   head_layer_norm: bool = False, **encoder_kwargs) -> CrowdQNetwork:
+                   head_layer_norm: bool = False, lidar: str = "off", lidar_rays: int = 0, lidar_range: float = 4.0,
+                   **encoder_kwargs) -> CrowdQNetwork:
     """A :class:`CrowdQNetwork` with the registered encoder ``encoder_name`` and a :class:`DuelingHead`
-    (with LayerNorm in its hidden layers when ``head_layer_norm``)."""
+    (with LayerNorm in its hidden layers when ``head_layer_norm``); ``lidar`` ``"mlp"`` or ``"conv"``: it reads
+    a scan of ``lidar_rays`` rays clipped at ``lidar_range`` too (:class:`~crowdrl.models.scan.ScanTokens`, built
+    after the encoder and the head: their initial weights are those of the network without it)."""
     encoder = make_encoder(encoder_name, **encoder_kwargs)
     head = DuelingHead(encoder.embedding_dim, num_actions=num_actions, hidden=hidden, layer_norm=head_layer_norm)
-    return CrowdQNetwork(encoder, head)
+    scan = None
+    if lidar != "off":
+        token_dim = int(getattr(encoder, "human_dim", encoder_kwargs.get("human_dim", 5)))
+        scan = ScanTokens(lidar, lidar_rays, lidar_range, token_dim)
+    return CrowdQNetwork(encoder, head, scan)
 
 
 def make_q_actor(

@@ -22,6 +22,10 @@ one step ahead).
   does (they stay the observed ones over the look-ahead); a network trained among obstacles
   (``entities=True``) reads them as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`)
   in every predicted state.
+* Lidar: a network that reads the scan (``lidar_key``) reads the observed one at the root and, in every
+  predicted state, the scan :func:`crowdrl.sim.lidar.lidar_scan` computes from the predicted robot pose
+  against the predicted humans' discs and the observed edges (the walls beyond them are not in the
+  observation; in open space the predicted scan is exact whenever the prediction is).
 * A predicted collision or goal ends the look-ahead (``end̂``): such a step is scored by its
   reward and ``Q(s, a)`` only, as a terminal transition has no successor value in the TD target.
 * Safety check (``safety_horizon`` H > 0; off by default): an action is *unsafe* when, taken now and its
@@ -49,6 +53,7 @@ from crowdrl.envs.robot_centric import entity_tokens, obstacles_centric, robot_c
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import step_reward
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
+from crowdrl.sim.lidar import lidar_scan
 from crowdrl.sim.lookahead import look_ahead
 
 
@@ -77,6 +82,7 @@ class OnlinePlanner(TensorDictModuleBase):
             ``net(robot_rc, entities_rc, entities_mask)``), as networks trained among obstacles do.
         obstacles_key: the observed obstacle edges ``[*, K, 4]`` (with ``obstacles_key + "_mask"``),
             read when the tensordict has them.
+        lidar_key: the lidar scan ``[*, R]`` a network with ``encoder.lidar`` reads last (``None``: it reads none).
 
     Writes ``"action"`` ``[*]``, ``"action_value"`` ``[*, A]`` (Q(s, ·)) and
     ``"chosen_action_value"`` ``[*, 1]`` (Q of the chosen action), as ``QValueActor`` does.
@@ -107,7 +113,7 @@ class OnlinePlanner(TensorDictModuleBase):
     def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,
                  depth: int = 1, width: int = 10, robot_key: str = "robot", humans_key: str = "humans",
                  mask_key: str | None = "humans_mask", entities: bool = False,
-                 obstacles_key: str = "obstacles", safety_horizon: int = 0) -> None:
+                 obstacles_key: str = "obstacles", safety_horizon: int = 0, lidar_key: str | None = None) -> None:
         super().__init__()
         if config.robot_kinematics != "unicycle":
             raise ValueError(f"planning needs the unicycle's discrete actions, got {config.robot_kinematics!r}")
@@ -127,22 +133,47 @@ class OnlinePlanner(TensorDictModuleBase):
         self.depth, self.width = int(depth), int(width)
         self.robot_key, self.humans_key, self.mask_key = robot_key, humans_key, mask_key
         self.entities, self.obstacles_key = bool(entities), obstacles_key
-        self.in_keys = [robot_key, humans_key] + ([mask_key] if mask_key is not None else [])
+        self.lidar_key = lidar_key
+        if lidar_key is not None and config.lidar_rays < 1:
+            raise ValueError("lidar_key: the network reads a scan, but config.lidar_rays is 0 (no scan)")
+        self.in_keys = ([robot_key, humans_key] + ([mask_key] if mask_key is not None else [])
+                        + ([lidar_key] if lidar_key is not None else []))
         self.out_keys = ["action", "action_value", "chosen_action_value"]
         self.register_buffer("table", action_table(config.robot_v_pref), persistent=False)
 
     # ------------------------------------------------------------------ the look-ahead
     def q_values(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None,
-                 obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Tensor:
+                 obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None,
+                 lidar: Tensor | None = None) -> Tensor:
         """``Q(s, ·)`` ``[M, A]`` of world-frame states ``robot [M, 9]``, ``humans [M, N, 5]`` (and the
-        observed obstacle edges ``[M, K, 4]``, read by an ``entities`` network)."""
+        observed obstacle edges ``[M, K, 4]``, read by an ``entities`` network; with ``lidar_key`` the scan
+        ``lidar [M, R]``, computed by :meth:`scan` when not given)."""
         robot_rc, humans_rc = robot_centric(robot, humans)
+        extra: tuple[Tensor, ...] = ()
+        if self.lidar_key is not None:
+            extra = (self.scan(robot, humans, humans_mask, obstacles, obstacles_mask) if lidar is None else lidar,)
         if self.entities:
             obstacles_rc = None if obstacles is None else obstacles_centric(robot, obstacles)
-            return self.net(robot_rc, *entity_tokens(robot_rc, humans_rc, obstacles_rc, humans_mask, obstacles_mask))
+            return self.net(robot_rc, *entity_tokens(robot_rc, humans_rc, obstacles_rc, humans_mask, obstacles_mask),
+                            *extra)
         if humans_mask is None:
-            return self.net(robot_rc, humans_rc)
-        return self.net(robot_rc, humans_rc, humans_mask)
+            return self.net(robot_rc, humans_rc, *extra)
+        return self.net(robot_rc, humans_rc, humans_mask, *extra)
+
+    def scan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, obstacles: Tensor | None = None,
+             obstacles_mask: Tensor | None = None) -> Tensor:
+        """The lidar scan ``[M, R]`` of a (predicted) state: from the robot's pose against the humans' discs and
+        the observed edges (:func:`crowdrl.sim.lidar.lidar_scan`, the env's own scan function)."""
+        cfg = self.config
+        segments = None
+        if obstacles is not None:
+            valid = (torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device)
+                     if obstacles_mask is None else obstacles_mask)
+            segments = (obstacles[..., 0:2], obstacles[..., 2:4], valid)
+        present = (torch.ones(humans.shape[:2], dtype=torch.bool, device=humans.device)
+                   if humans_mask is None else humans_mask)
+        return lidar_scan(robot[:, 0:2], robot[:, 8], cfg.lidar_rays, cfg.lidar_range, segments=segments,
+                          discs=(humans[..., 0:2], cfg.human_radius, present))
 
     def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int,
                obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -217,9 +248,10 @@ class OnlinePlanner(TensorDictModuleBase):
 
     @torch.no_grad()
     def plan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None = None,
-             obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> Plan:
+             obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None, lidar: Tensor | None = None) -> Plan:
         """The planner's decision for world-frame states ``robot [*, 9]``, ``humans [*, N, 5]`` (and
-        the observed obstacle edges ``[*, K, 4]`` with their mask ``[*, K]``, optional)."""
+        the observed obstacle edges ``[*, K, 4]`` with their mask ``[*, K]``, optional; the observed scan
+        ``lidar [*, R]`` for a network that reads it)."""
         lead, N = robot.shape[:-1], humans.shape[-2]
         robot, humans = robot.reshape(-1, robot.shape[-1]), humans.reshape(-1, N, humans.shape[-1])
         if humans_mask is not None:
@@ -228,7 +260,9 @@ class OnlinePlanner(TensorDictModuleBase):
             obstacles = obstacles.reshape(robot.shape[0], -1, 4)
             if obstacles_mask is not None:
                 obstacles_mask = obstacles_mask.reshape(robot.shape[0], -1)
-        q = self.q_values(robot, humans, humans_mask, obstacles, obstacles_mask)
+        if lidar is not None:
+            lidar = lidar.reshape(robot.shape[0], -1)
+        q = self.q_values(robot, humans, humans_mask, obstacles, obstacles_mask, lidar)
         scores, cand = self.scores(robot, humans, humans_mask, q, self.depth, obstacles, obstacles_mask)
         action = cand.gather(-1, scores.argmax(-1, keepdim=True)).squeeze(-1)
         if self.safety_horizon > 0:
@@ -243,7 +277,8 @@ class OnlinePlanner(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         mask = tensordict.get(self.mask_key, None) if self.mask_key is not None else None
         plan = self.plan(tensordict.get(self.robot_key), tensordict.get(self.humans_key), mask,
-                         tensordict.get(self.obstacles_key, None), tensordict.get(self.obstacles_key + "_mask", None))
+                         tensordict.get(self.obstacles_key, None), tensordict.get(self.obstacles_key + "_mask", None),
+                         tensordict.get(self.lidar_key) if self.lidar_key is not None else None)
         tensordict.set("action", plan.action)
         tensordict.set("action_value", plan.action_value)
         tensordict.set("chosen_action_value", plan.action_value.gather(-1, plan.action.unsqueeze(-1)))

@@ -30,7 +30,7 @@ from crowdrl.models import make_q_actor
 from crowdrl.models.predictor import make_predictor
 from crowdrl.policies import OnlinePlanner
 from crowdrl.training.config import PlanningConfig, TrainConfig
-from crowdrl.training.facts import MASK_KEY, RunFacts, obs_keys
+from crowdrl.training.facts import LIDAR_KEY, MASK_KEY, RunFacts, obs_keys
 from crowdrl.training.predictor_learner import PredictorLearner
 
 # what the learned crowd predictor trains on: world-frame states and the real next human states (one
@@ -44,20 +44,21 @@ class GreedyActing:
 
     Args:
         encoder: the Q network's encoder name; entities: the network reads entity tokens (among obstacles);
-        compile: call the network through ``torch.compile`` (:class:`~crowdrl.compile.CompiledModule`).
+        lidar: the network reads the lidar scan (``encoder.lidar``); compile: call the network through
+            ``torch.compile`` (:class:`~crowdrl.compile.CompiledModule`).
     """
 
     predictor: torch.nn.Module | None = None
 
-    def __init__(self, *, encoder: str, entities: bool, compile: bool = False) -> None:
-        self.encoder, self.entities, self.compile = encoder, entities, compile
+    def __init__(self, *, encoder: str, entities: bool, lidar: bool = False, compile: bool = False) -> None:
+        self.encoder, self.entities, self.lidar, self.compile = encoder, entities, lidar, compile
 
     def actor(self, net: torch.nn.Module, env: EnvBase) -> TensorDictModuleBase:
         """The greedy actor of ``net`` for ``env``'s action spec, reading the humans' mask when ``env``'s crowd
         size varies (one network serves any crowd)."""
         if self.compile:
             net = CompiledModule(net, what="the acting Q network")
-        return make_q_actor(self.encoder, env.action_spec, in_keys=obs_keys(crowd_env_of(env).config, self.entities),
+        return make_q_actor(self.encoder, env.action_spec, in_keys=obs_keys(crowd_env_of(env).config, self.entities, self.lidar),
                             net=net)
 
     def learners(self) -> list[AuxiliaryLearner]:
@@ -84,9 +85,9 @@ class PlannedActing(GreedyActing):
     """
 
     def __init__(self, section: PlanningConfig, predictor: torch.nn.Module, *, encoder: str, entities: bool,
-                 gamma: float, reads_mask: bool = False, compile: bool = False, learn: bool = False,
+                 gamma: float, lidar: bool = False, reads_mask: bool = False, compile: bool = False, learn: bool = False,
                  compile_loss: bool = False) -> None:
-        super().__init__(encoder=encoder, entities=entities, compile=compile)
+        super().__init__(encoder=encoder, entities=entities, lidar=lidar, compile=compile)
         self.section, self.predictor, self.gamma = section, predictor, gamma
         self._learners: list[AuxiliaryLearner] = []
         if learn and any(True for _ in predictor.parameters()):  # const_vel has no weights
@@ -103,7 +104,7 @@ class PlannedActing(GreedyActing):
         p = self.section
         return OnlinePlanner(net, predictor, crowd, gamma=self.gamma, depth=p.depth, width=p.width,
                              mask_key=MASK_KEY if crowd.variable_crowd else None, entities=self.entities,
-                             safety_horizon=p.safety_horizon)
+                             lidar_key=LIDAR_KEY if self.lidar else None, safety_horizon=p.safety_horizon)
 
     def learners(self) -> list[AuxiliaryLearner]:
         """The learned predictor's learner while training (none for ``const_vel`` or when only acting)."""
@@ -127,10 +128,10 @@ def make_acting(section: PlanningConfig, facts: RunFacts, *, train: TrainConfig,
     """The acting part of a run: :class:`PlannedActing` with ``section.enabled`` (its ``predictor``, a fresh
     seeded one when not given), else :class:`GreedyActing`. ``learn``: train the predictor (the trainer's part)."""
     if not section.enabled:
-        return GreedyActing(encoder=encoder, entities=facts.entities, compile=train.compile_acting)
+        return GreedyActing(encoder=encoder, entities=facts.entities, lidar=facts.lidar, compile=train.compile_acting)
     if predictor is None:
         predictor = make_predictor_of(section, facts)
-    return PlannedActing(section, predictor, encoder=encoder, entities=facts.entities, gamma=train.gamma,
+    return PlannedActing(section, predictor, encoder=encoder, entities=facts.entities, lidar=facts.lidar, gamma=train.gamma,
                          reads_mask=MASK_KEY in facts.obs_keys, compile=train.compile_acting, learn=learn,
                          compile_loss=train.compile_loss)
 

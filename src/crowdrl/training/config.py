@@ -80,6 +80,8 @@ class EnvConfig:
 @dataclass
 class EncoderConfig:
     name: str = "sgd3qn"
+    # the lidar scan as tokens beside the humans' (crowdrl.models.scan): off | mlp | conv; needs env.lidar_rays >= 1
+    lidar: str = "off"
 
 
 # The exploration section: the keys every strategy reads and those of each registered strategy's own schema

@@ -27,18 +27,22 @@ OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
 # what a network trained among obstacles reads: the humans and the observed obstacle edges as tokens
 ENTITY_OBS_KEYS = ("robot_rc", *RobotCentric.ENTITY_KEYS)
+LIDAR_KEY = "lidar"  # the robot's scan [B, R], read last by a network with encoder.lidar on
 
 
-def obs_keys(cfg: CrowdConfig, obstacles: bool | None = None) -> tuple[str, ...]:
+def obs_keys(cfg: CrowdConfig, obstacles: bool | None = None, lidar: bool = False) -> tuple[str, ...]:
     """What the networks read from an env of ``cfg``: the robot-centric states, and the humans' mask
     when the crowd size varies (a fixed crowd has every human present); with ``obstacles`` (default:
     whether ``cfg`` has them; a run's networks: :func:`~crowdrl.training.config.sees_obstacles`) the
-    entity tokens of humans and obstacle edges, with their mask, in place of the humans."""
+    entity tokens of humans and obstacle edges, with their mask, in place of the humans; with ``lidar``
+    (``encoder.lidar`` on) the scan last."""
     if obstacles is None:
         obstacles = cfg.obstacles_shape[0] > 0
     if obstacles:
-        return ENTITY_OBS_KEYS
-    return (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
+        keys = ENTITY_OBS_KEYS
+    else:
+        keys = (*OBS_KEYS, MASK_KEY) if cfg.variable_crowd else OBS_KEYS
+    return (*keys, LIDAR_KEY) if lidar else keys
 
 
 class StoresKeys(Protocol):
@@ -55,6 +59,7 @@ class RunFacts:
     Attributes:
         crowd: the simulator constants of the training env (``crowd_config(run)``).
         entities: whether the networks read humans and obstacle edges as entity tokens (trained among obstacles).
+        lidar: whether the networks read the lidar scan (``encoder.lidar``).
         obs_keys: the observation keys the networks read.
         num_actions: the robot's discrete action count.
         seed: the run seed (each part derives its own seed from it).
@@ -63,6 +68,7 @@ class RunFacts:
 
     crowd: CrowdConfig
     entities: bool
+    lidar: bool
     obs_keys: tuple[str, ...]
     num_actions: int
     seed: int
@@ -71,14 +77,9 @@ class RunFacts:
     @classmethod
     def of(cls, run: RunConfig) -> RunFacts:
         crowd = crowd_config(run)
-        entities = sees_obstacles(run)
-        return cls(crowd=crowd, entities=entities, obs_keys=obs_keys(crowd, entities), num_actions=NUM_ACTIONS,
-                   seed=run.seed, device=run.device)
-
-    @property
-    def mask_key(self) -> str | None:
-        """The humans' mask key where the crowd size varies and the networks read it (``None`` otherwise)."""
-        return MASK_KEY if MASK_KEY in self.obs_keys else None
+        entities, lidar = sees_obstacles(run), run.encoder.lidar != "off"
+        return cls(crowd=crowd, entities=entities, lidar=lidar, obs_keys=obs_keys(crowd, entities, lidar),
+                   num_actions=NUM_ACTIONS, seed=run.seed, device=run.device)
 
     def replay_keys(self, *parts: StoresKeys) -> list[NestedKey]:
         """The keys of a collected batch the replay buffer keeps: the transitions of :attr:`obs_keys`
@@ -90,4 +91,4 @@ class RunFacts:
         return out
 
 
-__all__ = ["ENTITY_OBS_KEYS", "MASK_KEY", "OBS_KEYS", "RunFacts", "StoresKeys", "obs_keys"]
+__all__ = ["ENTITY_OBS_KEYS", "LIDAR_KEY", "MASK_KEY", "OBS_KEYS", "RunFacts", "StoresKeys", "obs_keys"]

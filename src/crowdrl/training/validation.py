@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
+from crowdrl.models.scan import SCAN_KINDS
 from crowdrl.schema import SchemaError, check_bools
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS
@@ -76,6 +77,10 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     except ValueError as exc:
         raise ConfigError(f"env.{exc}") from None
     one_of(run.encoder.name, "encoder.name", sorted(ENCODERS))
+    one_of(run.encoder.lidar, "encoder.lidar", SCAN_KINDS)
+    check(run.encoder.lidar == "off" or e.lidar_rays >= 1, "encoder.lidar",
+          f"({run.encoder.lidar}) reads the lidar scan, but env.lidar_rays is {e.lidar_rays} (no scan): "
+          f"set env.lidar_rays (e.g. 72) or encoder.lidar=off")
     check_exploration(run)
     one_of(run.logger.name, "logger.name", LOGGERS)
     one_of(run.logger.mode, "logger.mode", WANDB_MODES)

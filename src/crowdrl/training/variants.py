@@ -26,6 +26,7 @@ from crowdrl.exploration import ExplorationStrategy, ReplayContext
 from crowdrl.models import make_encoder, make_q_network
 from crowdrl.models.qnet import CrowdQNetwork
 from crowdrl.training.config import RunConfig, sees_obstacles
+from crowdrl.training.facts import LIDAR_KEY
 
 ONE_STEP_KEY = "one_step_next"  # where the n-step transform keeps s_{t+1} for the intrinsic bonus
 
@@ -41,6 +42,7 @@ def make_network(run: RunConfig, num_actions: int = 81, *, strategy: Exploration
     (``make_strategy(run.exploration)``): required, so that the policy acting on the network and the
     strategy that modified it (a noisy network's noise, a dropout head's p) are the same object."""
     net = make_q_network(run.encoder.name, num_actions=num_actions, head_layer_norm=run.train.q_layer_norm,
+                         lidar=run.encoder.lidar, lidar_rays=run.env.lidar_rays, lidar_range=run.env.lidar_range,
                          **encoder_kwargs(run))
     return strategy.modify_network(net)
 
@@ -56,7 +58,9 @@ def replay_context(run: RunConfig, obs_keys: list, num_actions: int, frames: Cal
                    successor: str | None = None) -> ReplayContext:
     """What an exploration strategy's replay transform reads from ``run``: the one-step successor's
     keys (under ``successor``, :func:`successor_key`; ``None``: ``("next", ·)``), a fresh encoder of the run's
-    architecture, a seed derived from the run seed, and ``frames()``, the frame count a scheduled β reads."""
+    architecture, a seed derived from the run seed, and ``frames()``, the frame count a scheduled β reads.
+    The intrinsic models read the robot and the crowd (or entity) tokens, not the lidar scan."""
+    obs_keys = [k for k in obs_keys if k != LIDAR_KEY]
     next_keys = [(successor or "next", k) for k in obs_keys]
     return ReplayContext(obs_keys=list(obs_keys), next_obs_keys=next_keys, num_actions=num_actions,
                          gamma=run.train.gamma, frames=frames,
