@@ -1,5 +1,5 @@
 """The lidar scan as a network input (``encoder.lidar``): the scan's tokens, every encoder reading them, the
-planner's predicted scans, a run that trains with them, and the keys' checks."""
+planner's predicted scans, a run that trains, tests and exports with them, and the keys' checks."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.training import ConfigError, validate
 from crowdrl.training.checkpoint import config_fingerprint
 from crowdrl.training.config import to_dict
+from crowdrl.training.pipeline import run_training
 
 TINY = {"preset": "smoke", "seed": 0, "encoder": {"name": "sarl", "lidar": "conv"},
         "env": {"scenario": "corridor", "num_humans": 3, "lidar_rays": 24, "orca_backend": "eager"},
@@ -104,21 +105,35 @@ def test_the_planner_reads_the_observed_scan_at_the_root_and_predicts_it_exactly
         OnlinePlanner(net, ConstantVelocityPredictor(cfg.time_step), CrowdConfig(), gamma=0.97, lidar_key="lidar")
 
 
-def test_a_run_among_walls_trains_and_tests_with_the_scan(tmp_path):
-    """The recommended learner (counterfactual experience, Polyak targets) with planning, in a corridor: the
-    buffer keeps the scans, the actor, the planner and the counterfactual transitions read them, and the run
-    tests; its ONNX export is refused, naming the key."""
-    pytest.importorskip("onnx")
+@pytest.mark.parametrize("scenario", ["corridor", "circle"])
+def test_a_run_trains_tests_and_exports_with_the_scan(tmp_path, scenario):
+    """The recommended learner (counterfactual experience, Polyak targets) with planning: the buffer keeps the
+    scans, the actor, the planner and the counterfactual transitions read them, and the run tests. Its ONNX model
+    takes the scan last (the planner whole in open space; the greedy Q policy among walls, whose planner reads
+    edges the export does not take) and acts as the checkpoint does on test cases."""
+    pytest.importorskip("onnxruntime")
+    from crowdrl.agents import compare_on_test_cases
     from crowdrl.evaluation.report import read_eval_record
-    from crowdrl.export import export_onnx
-    from crowdrl.training.pipeline import run_training
+    from crowdrl.export import export_onnx, read_exported
 
-    run = validate(TINY)
+    run = validate({**TINY, "env": {**TINY["env"], "scenario": scenario}})
     assert run.train.counterfactual.mode != "off"
     summary = run_training(run, tmp_path / "run")
     assert summary["frames"] == 96 and summary["updates"] > 0
     record = read_eval_record(tmp_path / "run" / "eval.json")
-    assert record["episodes"] == 2 and record["scenario"] == "corridor"
-    with pytest.raises(ValueError, match="encoder.lidar: .* reads the lidar scan"):
-        export_onnx(tmp_path / "run", tmp_path / "policy.onnx")
-    assert not (tmp_path / "policy.onnx").exists()
+    assert record["episodes"] == 2 and record["scenario"] == scenario
+    among_walls = scenario == "corridor"
+    info = export_onnx(tmp_path / "run", tmp_path / "policy.onnx", planning={"depth": 0} if among_walls else None)
+    assert info.max_q_error is not None and info.max_q_error < 1e-4  # onnxruntime against torch, random inputs
+    model = read_exported(info.path)
+    assert model.layout == ("entities_lidar" if among_walls else "world_lidar") and model.inputs[-1] == "lidar"
+    assert model.metadata["crowdrl.lidar_rays"] == "24"
+    compared = compare_on_test_cases(tmp_path / "run", info.path, episodes=4, batch=4)
+    assert compared["steps"] > 0 and compared["differ"] == 0
+    assert compared["onnx"]["success_rate"] == compared["torch"]["success_rate"]
+    fewer = validate({**TINY, "env": {**TINY["env"], "scenario": scenario, "lidar_rays": 12}})
+    from crowdrl.onnx_policy import OnnxPolicy
+    from crowdrl.training.factories import make_env
+
+    with pytest.raises(ValueError, match="env.lidar_rays: .* 24 rays, the env gives 12"):
+        OnnxPolicy(model).check_env(make_env(fewer, split="test", num_envs=1))

@@ -29,6 +29,11 @@ A checkpoint trained among obstacles (corridor, doorway, room) takes the entity 
 ``entities_mask``); its planner reads the observed obstacle edges, which the exported planner does not
 take: such a checkpoint is refused unless ``planning_depth=0``.
 
+A network that reads the lidar scan (``encoder.lidar``) takes it as one more input, last: ``lidar``
+``[B, R]`` float32, the env's ``"lidar"`` observation (ray ``r`` at ``heading + 2πr/R``, counter-clockwise,
+metres clipped at the range; :mod:`crowdrl.sim.lidar`); its layout's name ends in ``_lidar``. Its planner
+computes the scans of predicted states itself, from the predicted humans (open space only, as above).
+
 The greedy model returns ``q_values``, the greedy ``action`` (the first of tied maxima, as
 ``torch.argmax``) and its ``command``: the row of the unicycle action table
 (:func:`crowdrl.sim.kinematics.action_table`), ``(speed m/s, rotation rad)``: turn by the rotation, then
@@ -65,13 +70,16 @@ from crowdrl.training.config import crowd_config
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
 ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles
 PLANNER_INPUTS = ("robot", "humans", "humans_mask")  # the planner: the env's world-frame observation
+LIDAR_INPUT = "lidar"  # a network that reads the scan (encoder.lidar) takes it last
 OUTPUTS = ("q_values", "action", "command")
 PLANNER_OUTPUTS = ("q_values", "action", "command", "candidates", "scores")
 # the version of the model's layout and metadata: 1 (no crowdrl.format_version) wrote the greedy Q policy only,
 # 2 adds the planner, crowdrl.format_version, crowdrl.observation, crowdrl.policy and crowdrl.planning_*
+# (and, later, the *_lidar layouts with crowdrl.lidar_rays and crowdrl.lidar_range: new layouts, same format)
 FORMAT_VERSION = 2
-# crowdrl.observation: the inputs each layout takes
-LAYOUTS = {"world": PLANNER_INPUTS, "robot_centric": INPUTS, "entities": ENTITY_INPUTS}
+# crowdrl.observation: the inputs each layout takes (a network reading the scan: the same, then "lidar")
+_BASE_LAYOUTS = {"world": PLANNER_INPUTS, "robot_centric": INPUTS, "entities": ENTITY_INPUTS}
+LAYOUTS = {**_BASE_LAYOUTS, **{f"{k}_lidar": (*v, LIDAR_INPUT) for k, v in _BASE_LAYOUTS.items()}}
 FORMATS = ("onnx",)
 DEFAULT_OPSET = 17
 # encoders whose exported graph holds the crowd size as a constant (a loop unrolled over the humans)
@@ -89,8 +97,9 @@ class GreedyQPolicy(nn.Module):
         self.net = net
         self.register_buffer("table", table.to(torch.float32))
 
-    def forward(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        q = self.net(robot_rc, humans_rc, humans_mask)
+    def forward(self, robot_rc: Tensor, humans_rc: Tensor, humans_mask: Tensor, *lidar: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor]:
+        q = self.net(robot_rc, humans_rc, humans_mask, *lidar)  # lidar: [B, R], for a network that reads the scan
         action = q.argmax(dim=-1)
         return q, action, self.table[action]
 
@@ -107,8 +116,9 @@ class PlannerPolicy(nn.Module):
                              "(entity tokens) cannot be exported with its planner")
         self.planner = planner
 
-    def forward(self, robot: Tensor, humans: Tensor, humans_mask: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        plan = self.planner.plan(robot, humans, humans_mask)
+    def forward(self, robot: Tensor, humans: Tensor, humans_mask: Tensor, *lidar: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        plan = self.planner.plan(robot, humans, humans_mask, lidar=lidar[0] if lidar else None)
         return plan.action_value, plan.action, self.planner.table[plan.action], plan.candidates, plan.scores
 
 
@@ -158,8 +168,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     1e-4, or a planner action differing where the scores do not tie within 1e-4, raises ``RuntimeError``.
     Raises :class:`~crowdrl.training.CheckpointError` naming the file for a missing, corrupt or unsafe
     checkpoint, ``ValueError`` naming the key for a path that cannot be written (``out``), bad planner
-    settings (``planning_<key>``), a planner the export cannot hold (trained among obstacles) or a network that
-    reads the lidar scan (``encoder.lidar``).
+    settings (``planning_<key>``) or a planner the export cannot hold (trained among obstacles).
     """
     try:
         import onnx
@@ -173,9 +182,6 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     acting = {k: v for k, v in (planning or {}).items() if v is not None}
     if acting:
         run = act_with(run, acting, prefix="planning_")
-    if run.encoder.lidar != "off":
-        raise ValueError(f"encoder.lidar: {ckpt}'s network reads the lidar scan ({run.encoder.lidar}), which the "
-                         f"exported layouts ({', '.join(LAYOUTS)}) do not take yet; evaluate the checkpoint itself")
     entities = sees_obstacles(run)
     plans = run.planning.enabled
     if plans and entities:
@@ -184,6 +190,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
                          "policy with planning_depth=0 (it acts differently from the planner)")
     path = check_writable(path)
     crowd = crowd_config(run)
+    scan = (crowd.lidar_rays, crowd.lidar_range) if run.encoder.lidar != "off" else None  # the network's scan input
     low, high = crowd.min_humans or crowd.num_humans, crowd.num_humans
     fixed_crowd = run.encoder.name in FIXED_CROWD_ENCODERS
     table = action_table(crowd.robot_v_pref)
@@ -191,14 +198,18 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         predictor = load_trained_predictor(run, data, ckpt)
         p = run.planning
         policy: nn.Module = PlannerPolicy(OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth,
-                                                        width=p.width, safety_horizon=p.safety_horizon)).eval()
-        inputs, outputs, layout, width = PLANNER_INPUTS, PLANNER_OUTPUTS, "world", 5
+                                                        width=p.width, safety_horizon=p.safety_horizon,
+                                                        lidar_key=LIDAR_INPUT if scan else None)).eval()
+        outputs, layout, width = PLANNER_OUTPUTS, "world", 5
     else:
         policy = GreedyQPolicy(net, table).eval()
-        inputs, width = (ENTITY_INPUTS, ENTITY_DIM) if entities else (INPUTS, 5)
+        width = ENTITY_DIM if entities else 5
         outputs, layout = OUTPUTS, "entities" if entities else "robot_centric"
+    layout += "_lidar" if scan else ""
+    inputs = LAYOUTS[layout]
     rows = high + crowd.num_obstacle_tokens if entities else high  # the slots an unrolled LSTM-RL takes
     example = _random_world(2, rows, seed=0) if plans else _random_observations(2, rows, seed=0, width=width)
+    example += _random_scans(2, scan, seed=0)
     axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
     if not fixed_crowd:
         axes[inputs[1]][1] = axes[inputs[2]][1] = "entities" if entities else "humans"
@@ -250,6 +261,9 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
                      f"{humans_text}; all in the robot's frame: origin at the robot, x towards the goal")
         outputs_text = ("q_values [B,81] float32, action [B] int64 (greedy, first of ties), "
                         "command [B,2] float32 (speed m/s, rotation rad)")
+    if scan:
+        described += (f", lidar [B,{scan[0]}] float32 (the env's lidar: ray r at heading + 2*pi*r/{scan[0]}, "
+                      f"counter-clockwise, metres to the first wall or human, clipped at {scan[1]!r})")
     metadata = {
         "crowdrl.format_version": str(FORMAT_VERSION),
         "crowdrl.observation": layout,
@@ -274,6 +288,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         "crowdrl.fingerprint": config_fingerprint(to_dict(trained)),
         "crowdrl.config": json.dumps(to_dict(trained), sort_keys=True),
         "crowdrl.checkpoint": ckpt.name,
+        **({"crowdrl.lidar_rays": str(scan[0]), "crowdrl.lidar_range": repr(scan[1])} if scan else {}),
     }
     onnx.helper.set_model_props(model, metadata)
     model.producer_name = "crowdrl"
@@ -283,9 +298,9 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     payload = model.SerializeToString()
     max_err, differing = None, 0
     if check and plans:
-        max_err, differing = _check_planner_against_torch(payload, policy, rows, fixed_crowd)
+        max_err, differing = _check_planner_against_torch(payload, policy, rows, fixed_crowd, scan)
     elif check:
-        max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width)
+        max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width, scan)
     try:
         atomic_write_bytes(path, payload)
     except OSError as exc:
@@ -373,7 +388,7 @@ def read_exported(path: Path | str) -> ExportedModel:
     if names != LAYOUTS[layout]:
         raise CheckpointError(f"{path}: its inputs {', '.join(names)} differ from its observation layout {layout!r} "
                               f"({', '.join(LAYOUTS[layout])}): edited or foreign file")
-    if (meta.get("crowdrl.policy") == "planner") != (layout == "world"):
+    if (meta.get("crowdrl.policy") == "planner") != layout.startswith("world"):
         raise CheckpointError(f"{path}: crowdrl.policy {meta.get('crowdrl.policy')!r} does not fit observation layout "
                               f"{layout!r}: edited or foreign file")
     try:
@@ -416,8 +431,16 @@ def _random_world(batch: int, humans: int, seed: int) -> tuple[Tensor, Tensor, T
     return robot, crowd, mask
 
 
-def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int, fixed_crowd: bool
-                                 ) -> tuple[float | None, int]:
+def _random_scans(batch: int, scan: tuple[int, float] | None, seed: int) -> tuple[Tensor, ...]:
+    """``(lidar [B, R],)``: readings uniform in ``[0, range]`` for ``scan = (R, range)``; ``()`` without a scan."""
+    if scan is None:
+        return ()
+    g = torch.Generator().manual_seed(seed + 7)
+    return (torch.rand(batch, scan[0], generator=g) * scan[1],)
+
+
+def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int, fixed_crowd: bool,
+                                 scan: tuple[int, float] | None = None) -> tuple[float | None, int]:
     """``(the largest Q or score difference, the actions that differ on near-ties)`` between onnxruntime and
     the torch planner on random world-frame states (``(None, 0)`` without onnxruntime); ``RuntimeError`` for a
     difference above 1e-4 or an action that differs where the scores do not tie within 1e-4."""
@@ -428,10 +451,11 @@ def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int,
     session = onnxruntime.InferenceSession(payload, providers=["CPUExecutionProvider"])
     worst, differing = 0.0, 0
     for batch, n, seed in ((64, humans, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1), 2)):
-        obs = _random_world(batch, n, seed)
+        obs = _random_world(batch, n, seed) + _random_scans(batch, scan, seed)
         with torch.no_grad():
             q, action, _, cand, scores = policy(*obs)
-        got = session.run(["q_values", "action", "scores"], dict(zip(PLANNER_INPUTS, (t.numpy() for t in obs))))
+        names = PLANNER_INPUTS + ((LIDAR_INPUT,) if scan else ())
+        got = session.run(["q_values", "action", "scores"], dict(zip(names, (t.numpy() for t in obs))))
         worst = max(worst, float((torch.from_numpy(got[0]) - q).abs().max()),
                     float((torch.from_numpy(got[2]) - scores).abs().max()))
         differ = torch.from_numpy(got[1]) != action
@@ -466,7 +490,8 @@ def _random_observations(batch: int, humans: int, seed: int, width: int = 5) -> 
 
 
 def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fixed_crowd: bool,
-                         inputs: tuple[str, ...] = INPUTS, width: int = 5) -> float | None:
+                         inputs: tuple[str, ...] = INPUTS, width: int = 5, scan: tuple[int, float] | None = None
+                         ) -> float | None:
     """The largest Q difference between onnxruntime and torch on random inputs (None without onnxruntime)."""
     try:
         import onnxruntime
@@ -475,7 +500,7 @@ def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fix
     session = onnxruntime.InferenceSession(payload, providers=["CPUExecutionProvider"])
     worst = 0.0
     for batch, n, seed in ((64, humans, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1), 2)):
-        obs = _random_observations(batch, n, seed, width)
+        obs = _random_observations(batch, n, seed, width) + _random_scans(batch, scan, seed)
         with torch.no_grad():
             q = policy(*obs)[0]
         got = session.run(["q_values"], dict(zip(inputs, (t.numpy() for t in obs))))[0]
@@ -485,6 +510,7 @@ def _check_against_torch(payload: bytes, policy: GreedyQPolicy, humans: int, fix
     return worst
 
 
-__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "FORMAT_VERSION", "INPUTS", "LAYOUTS",
+__all__ = ["DEFAULT_OPSET", "ENTITY_INPUTS", "FIXED_CROWD_ENCODERS", "FORMATS", "FORMAT_VERSION", "INPUTS",
+           "LAYOUTS", "LIDAR_INPUT",
            "OUTPUTS", "PLANNER_INPUTS", "PLANNER_OUTPUTS", "ExportInfo", "ExportedModel", "GreedyQPolicy",
            "PlannerPolicy", "check_writable", "export_onnx", "read_exported"]

@@ -21,7 +21,8 @@ from crowdrl.export import ExportedModel, read_exported
 class OnnxPolicy(TensorDictModuleBase):
     """An exported model's policy on a crowdrl env's tensordicts: feeds the model the keys of its observation
     layout (the world-frame ``robot``, ``humans`` of the planner; the robot-centric ``robot_rc``, ``humans_rc``
-    of a greedy model), with the env's ``humans_mask`` (all present when the env has none), and writes
+    of a greedy model), with the env's ``humans_mask`` (all present when the env has none) and ``lidar`` when the
+    network reads the scan, and writes
     ``"action"`` ``[*]``, ``"action_value"`` ``[*, 81]`` and ``"chosen_action_value"`` ``[*, 1]`` as the torch
     actors do. Deterministic: the model is the evaluation policy (no exploration).
 
@@ -43,7 +44,7 @@ class OnnxPolicy(TensorDictModuleBase):
         or a network trained among obstacles in an open scenario."""
         cfg = crowd_env_of(env).config
         path = self.model.path
-        rows = cfg.num_humans + (cfg.num_obstacle_tokens if self.model.layout == "entities" else 0)
+        rows = cfg.num_humans + (cfg.num_obstacle_tokens if self.model.layout.startswith("entities") else 0)
         if self.model.fixed_humans is not None and rows != self.model.fixed_humans:
             raise ValueError(f"{num_humans_key}: {path} takes exactly {self.model.fixed_humans} rows of humans "
                              f"(and obstacle edges; {self.model.run.encoder.name}), the env gives {rows}")
@@ -51,6 +52,10 @@ class OnnxPolicy(TensorDictModuleBase):
             raise ValueError(f"{scenario_key}: {path} holds an online planner that reads no obstacle edges; "
                              f"{cfg.scenario} has obstacles, which the checkpoint's planner would see: evaluate "
                              "the checkpoint instead")
+        rays = int(self.model.metadata.get("crowdrl.lidar_rays", 0))
+        if rays and cfg.lidar_rays != rays:
+            raise ValueError(f"{scenario_key}.lidar_rays: {path} reads a lidar scan of {rays} rays, the env gives "
+                             f"{cfg.lidar_rays}")
         if cfg.robot_kinematics != "unicycle":
             raise ValueError(f"{scenario_key}: {path} acts with the unicycle's 81 actions, the env's robot is "
                              f"{cfg.robot_kinematics}")
@@ -64,9 +69,13 @@ class OnnxPolicy(TensorDictModuleBase):
         mask = tensordict.get(names[2], None)
         if mask is None:
             mask = torch.ones(rows.shape[:-1], dtype=torch.bool, device=rows.device)
-        return {names[0]: first.reshape(-1, first.shape[-1]).to("cpu", torch.float32).numpy(),
-                names[1]: rows.reshape(-1, *rows.shape[len(lead):]).to("cpu", torch.float32).numpy(),
-                names[2]: mask.reshape(-1, mask.shape[-1]).to("cpu", torch.bool).numpy()}
+        feeds = {names[0]: first.reshape(-1, first.shape[-1]).to("cpu", torch.float32).numpy(),
+                 names[1]: rows.reshape(-1, *rows.shape[len(lead):]).to("cpu", torch.float32).numpy(),
+                 names[2]: mask.reshape(-1, mask.shape[-1]).to("cpu", torch.bool).numpy()}
+        for name in names[3:]:  # the lidar scan [*, R] of a network that reads it
+            value = tensordict.get(name)
+            feeds[name] = value.reshape(-1, value.shape[-1]).to("cpu", torch.float32).numpy()
+        return feeds
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         lead = tensordict.get(self.in_keys[0]).shape[:-1]

@@ -60,8 +60,8 @@ class EnvConfig:
     room_pillar_max: float = CrowdConfig.room_pillar_max
     orca_time_horizon_obst: float = CrowdConfig.orca_time_horizon_obst
     obstacle_tokens: int = CrowdConfig.obstacle_tokens  # the nearest obstacle edges the robot observes
-    # a 2-D lidar scan in the observation, every scenario ("lidar" [B, lidar_rays]; 0: none): for users,
-    # no network of crowdrl reads it
+    # a 2-D lidar scan in the observation, every scenario ("lidar" [B, lidar_rays]; 0: none); the networks read
+    # it with encoder.lidar
     lidar_rays: int = CrowdConfig.lidar_rays
     lidar_range: float = CrowdConfig.lidar_range  # m, readings clipped to it
     # how the humans move (orca, social_force, linear, or mixed: social_force_share and linear_share of the
