@@ -274,7 +274,9 @@ def test_the_resource_checks_compare_with_the_memory_available(monkeypatch):
 
 @pytest.mark.parametrize("overrides", [["planning.enabled=false"], ["planning.enabled=true"],
                                        ["planning.enabled=false", "env.min_humans=5", "env.max_humans=20"],
-                                       ["planning.enabled=false", "learner=plain"], ["learner=plain"]])
+                                       ["planning.enabled=false", "learner=plain"], ["learner=plain"],
+                                       ["env.lidar_rays=16"], ["env.lidar_rays=16", "encoder.lidar=mlp"],
+                                       ["env=corridor", "env.num_humans=5", "env.lidar_rays=16", "encoder.lidar=conv"]])
 def test_transition_bytes_is_what_the_replay_buffer_stores(overrides):
     """The estimate behind train.buffer_size's bound, against a real buffer's stored transition (the keys the
     trainer stores: the networks', the predictor's, the counterfactual experience's)."""

@@ -3,6 +3,7 @@ estimated from the config, against the memory available now."""
 
 from __future__ import annotations
 
+from crowdrl.envs.robot_centric import ENTITY_DIM
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
 from crowdrl.training.config import (EVAL_BATCH, ConfigError, RunConfig, counterfactual_on, crowd_config, crowd_range,
                                      sees_obstacles)
@@ -40,12 +41,20 @@ def planner_bytes(run: RunConfig, batch: int | None = None) -> int:
 
 def transition_bytes(run: RunConfig) -> int:
     """Bytes of one transition in the replay buffer (``RunFacts.replay_keys``): the robot-centric
-    state and successor (float32, plus the humans' bool mask when the crowd size varies), the
+    state and successor (float32, plus the humans' bool mask when the crowd size varies; among obstacles the
+    entity tokens of the humans and the observed edges, ``ENTITY_DIM`` float32 each, with their mask), the
     action, ``index`` and ``steps_to_next_obs`` (int64), the reward (float32), ``done`` and
-    ``terminated`` (bool), and with the learned predictor the world-frame state and next humans."""
+    ``terminated`` (bool), with the learned predictor the world-frame state and next humans, and with
+    ``encoder.lidar`` the scan and the next scan (float32)."""
     low, high = crowd_range(run.env)
-    obs = 4 * (ROBOT_OBS_DIM + HUMAN_OBS_DIM * high) + (high if low < high else 0)
+    if sees_obstacles(run):
+        tokens = high + crowd_config(run).num_obstacle_tokens
+        obs = 4 * (ROBOT_OBS_DIM + ENTITY_DIM * tokens) + tokens
+    else:
+        obs = 4 * (ROBOT_OBS_DIM + HUMAN_OBS_DIM * high) + (high if low < high else 0)
     out = 2 * obs + 3 * 8 + 4 + 2
+    if run.encoder.lidar != "off":
+        out += 2 * 4 * run.env.lidar_rays
     if (run.planning.enabled and run.planning.predictor == "learned") or counterfactual_on(run):
         out += 4 * (ROBOT_OBS_DIM + 2 * HUMAN_OBS_DIM * high)
     if counterfactual_on(run) and sees_obstacles(run):  # the episode's map: P polygons of V vertices and their mask
