@@ -272,6 +272,16 @@ def test_reproduce_names_the_setting_in_its_manifest_and_gives_it_to_every_run(t
     assert "train.counterfactual.k=3" in run_overrides(plan, plan.methods[0])
     with pytest.raises(PlanError, match="^train_learner: unknown 'best'; allowed: paper, plain, recommended"):
         make_plan({**cfg, "train_learner": "best"})
+    # the lidar scan (issue 49): stated to every run and in the manifest; off, the runs' commands are as before it
+    assert not any("lidar" in o for o in run_overrides(plain, plain.methods[0]))
+    assert plain.manifest()["lidar"] == {"encoder": "off", "rays": 0}
+    scan = make_plan({**cfg, "lidar": "conv", "lidar_rays": 36})
+    assert {"encoder.lidar=conv", "env.lidar_rays=36"} <= set(run_overrides(scan, scan.methods[0]))
+    assert scan.manifest()["lidar"] == {"encoder": "conv", "rays": 36}
+    with pytest.raises(PlanError, match="^lidar: unknown 'cnn'"):
+        make_plan({**cfg, "lidar": "cnn"})
+    with pytest.raises(PlanError, match="^lidar_rays: must be an integer in 1..1024 when lidar=mlp, got 0"):
+        make_plan({**cfg, "lidar": "mlp", "lidar_rays": 0})
     with pytest.raises(PlanError, match="counterfactual"):
         make_plan({**cfg, "counterfactual": {"modes": "merged"}})
 

@@ -259,13 +259,15 @@ def allowed_hint(key: str = "") -> str:
 
     return ", ".join(allowed_keys(ReproduceConfig))
 
-# the default out= names the learner: results/<budget>[-planning][-counterfactual][-polyak]
+# the default out= names the learner: results/<budget>[-planning][-counterfactual][-polyak][-lidar-<kind>]
 if not OmegaConf.has_resolver("crowdrl_learner_suffix"):
     from crowdrl.reproduction.plan import learner_suffix
 
     OmegaConf.register_new_resolver("crowdrl_learner_suffix", learner_suffix)
 if not OmegaConf.has_resolver("crowdrl_planning_suffix"):
     OmegaConf.register_new_resolver("crowdrl_planning_suffix", lambda planning: "-planning" if planning is True else "")
+if not OmegaConf.has_resolver("crowdrl_lidar_suffix"):  # -lidar-<kind> when the networks read the scan
+    OmegaConf.register_new_resolver("crowdrl_lidar_suffix", lambda lidar: "" if lidar == "off" else f"-lidar-{lidar}")
 
 
 @hydra_command("reproduce", "reproduce", allowed=allowed_hint)

@@ -59,6 +59,9 @@ class ReproduceConfig:
     threads: int = 1  # torch threads per run
     reps: int = 2000  # bootstrap resamples for the confidence intervals
     planning: bool = True  # every run acts with SG-D3QN's online planning (planning.enabled)
+    # every run's network reads the lidar scan (encoder.lidar: off | mlp | conv) of lidar_rays rays (env.lidar_rays)
+    lidar: str = "off"
+    lidar_rays: int = 72
     # every run's learner (conf/learner/): recommended | paper | plain; null: the budget preset's (paper for
     # budget=paper, else recommended); counterfactual.* and train.* below set its keys one by one
     train_learner: Optional[str] = None

@@ -21,6 +21,7 @@ OUT_MARKER = "manifest.json"  # written into out= under its lock by the first re
 KEYS = {f.name for f in dataclasses.fields(ReproduceConfig)}  # the settings' keys (the schema's)
 # a manifest written before its counterfactual and levers keys: its runs trained without counterfactual
 # experience and with every lever off (COUNTERFACTUAL_OFF, LEVERS_OFF: the plain learner, train's defaults then)
+LIDAR_OFF = ("off", 0)  # (encoder.lidar, env.lidar_rays) of runs whose networks read no scan, and of manifests before it
 
 
 class PlanError(ValueError):
@@ -67,6 +68,13 @@ class Plan:
     counterfactual: tuple[tuple[str, Any], ...] = tuple(COUNTERFACTUAL_OFF.items())  # every run's train.counterfactual
     levers: tuple[tuple[str, Any], ...] = ()  # every run's stability levers that differ from their defaults
     ceiling: Path | None = None  # a folder of ceiling files <scenario>.json (not in the manifest: added at any time)
+    lidar: tuple[str, int] = LIDAR_OFF  # every run's (encoder.lidar, env.lidar_rays); off: no scan
+
+    def lidar_overrides(self) -> list[str]:
+        """``encoder.lidar=<kind>`` and ``env.lidar_rays=<R>`` when the runs read the scan (nothing when off: the
+        runs' commands stay those recorded before the key)."""
+        kind, rays = self.lidar
+        return [] if kind == "off" else [f"encoder.lidar={kind}", f"env.lidar_rays={rays}"]
 
     def ceiling_file(self, scenario: str) -> Path | None:
         """The ceiling file of ``scenario`` in the ceiling folder (``None``: no folder, or no file for it)."""
@@ -105,7 +113,8 @@ class Plan:
         out = {"format": MANIFEST_FORMAT, "crowdrl_version": crowdrl.__version__, "budget": self.budget,
                "train_scenario": self.train_scenario, "episodes": self.episodes}
         return {**out, "planning": self.planning, "counterfactual": dict(self.counterfactual),
-                "levers": {**LEVERS_OFF, **dict(self.levers)}}
+                "levers": {**LEVERS_OFF, **dict(self.levers)},
+                "lidar": {"encoder": self.lidar[0], "rays": self.lidar[1]}}
 
 
 def make_plan(cfg: dict[str, Any]) -> Plan:
@@ -153,6 +162,13 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")
     if any(not 0 <= seed <= MAX_SEED for seed in seeds) or len(set(seeds)) != len(seeds):
         raise PlanError(f"seeds: must be distinct integers in 0..2**63-1, got {seeds}")
+    from crowdrl.models.scan import SCAN_KINDS
+    from crowdrl.sim.config import MAX_LIDAR_RAYS
+
+    if s.lidar not in SCAN_KINDS:
+        raise PlanError(f"lidar: unknown {s.lidar!r}; allowed: {', '.join(SCAN_KINDS)}")
+    if s.lidar != "off" and not 1 <= s.lidar_rays <= MAX_LIDAR_RAYS:
+        raise PlanError(f"lidar_rays: must be an integer in 1..{MAX_LIDAR_RAYS} when lidar={s.lidar}, got {s.lidar_rays}")
     counterfactual, lever_values = resolve_learner(s)
     levers = tuple((k, v) for k, v in lever_values.items() if v != LEVERS_OFF[k])
     scenarios = names("scenarios", SCENARIOS)
@@ -160,7 +176,7 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
     if ceiling is not None:
         check_ceilings(ceiling, scenarios, s.episodes)
     return Plan(counterfactual=tuple(counterfactual.items()), levers=levers, planning=s.planning, budget=s.budget,
-                ceiling=ceiling,
+                ceiling=ceiling, lidar=(s.lidar, s.lidar_rays) if s.lidar != "off" else LIDAR_OFF,
                 encoders=names("encoders", tuple(sorted(ENCODERS))),
                 variants=names("variants", strategy_names()), seeds=tuple(seeds),
                 train_scenario=s.train_scenario, scenarios=scenarios,
@@ -281,6 +297,7 @@ def check_manifest(plan: Plan) -> None:
         have.setdefault("planning", False)  # folders made before the key trained without planning
         have.setdefault("counterfactual", COUNTERFACTUAL_OFF)  # ... and without counterfactual experience
         have.setdefault("levers", LEVERS_OFF)  # ... and without stability levers
+        have.setdefault("lidar", {"encoder": LIDAR_OFF[0], "rays": LIDAR_OFF[1]})  # ... and without the scan
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
             said = ", ".join(f"{k}: folder {a!r} vs now {b!r}" for k, (a, b) in diff.items())
@@ -299,7 +316,7 @@ def run_overrides(plan: Plan, method: Method) -> list[str]:
             f"env={plan.train_scenario}", "logger=csv", "logger.progress_bar=false", "logger.render=false",
             f"train.test_episodes={plan.episodes}", f"threads={plan.threads}",
             f"planning.enabled={str(plan.planning).lower()}",
-            *plan.counterfactual_overrides(), *plan.lever_overrides()]
+            *plan.counterfactual_overrides(), *plan.lever_overrides(), *plan.lidar_overrides()]
 
 
 def is_trained(run_dir: Path) -> bool:

@@ -133,6 +133,8 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_
     what = ("SG-D3QN exploration variants" if plan.encoders == (DEFAULT_ENCODER,)
             else f"exploration variants of the encoders {', '.join(plan.encoders)}")
     planning = " with online planning" if plan.planning else ""
+    if plan.lidar[0] != "off":
+        planning += f", reading the lidar scan ({plan.lidar[0]}, {plan.lidar[1]} rays)"
     transfer = [sc for sc in plan.scenarios if sc != plan.train_scenario]
     paper = " (paper, one seed)" if set(plan.scenarios) & set(OPEN_SCENARIOS) else ""  # the paper has open space only
     zero_shot = f"; {' and '.join(transfer)} {'is' if len(transfer) == 1 else 'are'} zero-shot" if transfer else ""
