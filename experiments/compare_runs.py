@@ -18,8 +18,10 @@ of success, collision, navigation time and return with a 95 % stratified-bootstr
 ``scalars.jsonl``), never on test cases: what settings are chosen by. Per run: the success,
 collision and timeout rates over its last ``--last`` validations (the end of training: a run that
 falls back late scores low), its best validation success, how far the last validations sit below
-that best (``gap``), and the largest drop of a validation below the run's running best among those
-after ``--after`` frames (default: the second half of the run).
+that best (``gap``), the largest drop of a validation below the run's running best among those
+after ``--after`` frames (default: the second half of the run), and the frames to its first validation
+whose success reaches ``--reach`` (default 0.5; how fast exploration finds the goal, even where the final
+rates tie; a run that never reaches it counts as not reached and its group's cell shows how many did).
 
     python experiments/compare_runs.py --out results/planning \\
         --group "ε-greedy=results/demo/runs/egreedy-s0,results/demo/runs/egreedy-s1,results/demo/runs/egreedy-s2" \\
@@ -47,7 +49,8 @@ METRICS = (("success_rate", "success", 3), ("collision_rate", "collision", 3), (
            ("average_return", "avg return", 4))
 VAL_METRICS = (("success_rate", "success (last val.)", 3), ("collision_rate", "collision (last val.)", 3),
                ("timeout_rate", "timeout (last val.)", 3), ("best_success_rate", "best val. success", 3),
-               ("gap_to_best", "best - last val.", 3), ("late_drop", "largest drop", 2))
+               ("gap_to_best", "best - last val.", 3), ("late_drop", "largest drop", 2),
+               ("frames_to_reach", "frames to first val. ≥ reach", 0))
 VAL_SCENARIO = "validation"
 
 
@@ -55,10 +58,11 @@ class Refused(ValueError):
     """Bad input: the message names the argument; nothing is written."""
 
 
-def val_record(run: Path, last: int, after: int | None = None) -> dict:
+def val_record(run: Path, last: int, after: int | None = None, reach: float = 0.5) -> dict:
     """A run's validation results: rates over its last ``last`` validations, its best success, the
-    best minus the last validations' success (``gap_to_best``), and the largest drop below the running
-    best among the validations after ``after`` frames (``late_drop``; None: the second half of the run).
+    best minus the last validations' success (``gap_to_best``), the largest drop below the running
+    best among the validations after ``after`` frames (``late_drop``; None: the second half of the run),
+    and the frames of its first validation with success ``>= reach`` (``frames_to_reach``; None: never).
     ``episodes``: the episodes of those last validations together; ``val_episodes``: each one's."""
     rows = [json.loads(line) for line in (run / "scalars.jsonl").read_text().splitlines() if line.strip()]
     vals = [r for r in rows if r.get("kind") == "val"]
@@ -73,6 +77,8 @@ def val_record(run: Path, last: int, after: int | None = None) -> dict:
     out["gap_to_best"] = out["best_success_rate"] - out["success_rate"]
     late = frames > (frames[-1] / 2 if after is None else after)
     out["late_drop"] = float((np.maximum.accumulate(success) - success)[late].max(initial=0.0))
+    reached = np.flatnonzero(success >= reach)
+    out["frames_to_reach"] = int(frames[reached[0]]) if reached.size else None
     out["val_episodes"] = [int(r["val/episodes"]) for r in tail]
     out["episodes"] = sum(out["val_episodes"])
     out["frames"] = [tail[0]["frames"], tail[-1]["frames"]]
@@ -140,12 +146,12 @@ def check_records(groups: list[tuple[str, list[Path]]], scenarios: list[str],
 
 
 def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: int, last: int = 5,
-            after: int | None = None) -> list[dict]:
+            after: int | None = None, reach: float = 0.5) -> list[dict]:
     rows = []
     metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
     for scenario in scenarios:
         if scenario == VAL_SCENARIO:
-            records = {label: [val_record(r, last, after) for r in runs] for label, runs in groups}
+            records = {label: [val_record(r, last, after, reach) for r in runs] for label, runs in groups}
         else:
             records = {label: [read_run_test_record(r, scenario) for r in runs] for label, runs in groups}
         first = groups[0][0]
@@ -154,6 +160,7 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
                                    "episodes": recs[0]["episodes"], "episodes_per_seed": [r["episodes"] for r in recs]}
             if scenario == VAL_SCENARIO:
                 row["val_episodes"] = sorted({n for r in recs for n in r["val_episodes"]})
+                row["reach"], row["reached"] = reach, sum(r["frames_to_reach"] is not None for r in recs)
             for key, _, _ in metrics:
                 values = np.array([np.nan if r[key] is None else r[key] for r in recs], dtype=np.float64)
                 mean, lo, hi = mean_interval({label: values}, reps=reps)[label]
@@ -167,12 +174,20 @@ def compare(groups: list[tuple[str, list[Path]]], scenarios: list[str], reps: in
     return rows
 
 
+def _val_cell(row: dict, key: str, digits: int) -> str:
+    """A metric's cell; the frames to reach a success shows how many seeds reached it when not all did."""
+    if key == "frames_to_reach" and row["reached"] < row["seeds"]:
+        seen = [int(v) for v in row[f"{key}_per_seed"] if v == v]  # NaN: never reached
+        return f"{row['reached']}/{row['seeds']} reached" + (f" ({', '.join(map(str, seen))})" if seen else "")
+    return interval_cell(row, key, digits, interval=row["seeds"] > 1)
+
+
 def _counts(values: set[int]) -> str:
     return "/".join(str(v) for v in sorted(values))
 
 
 def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last: int = 5,
-             after: int | None = None) -> str:
+             after: int | None = None, reach: float = 0.5) -> str:
     metrics = VAL_METRICS if scenarios == [VAL_SCENARIO] else METRICS
 
     lines = [f"Cells: mean over seeds [95 % stratified-bootstrap CI, rliable, {reps} resamples]; "
@@ -181,11 +196,12 @@ def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last
         per_val = {n for r in rows for n in r.get("val_episodes", [])}
         lines[-1:] = [f"Validation episodes only (the runs' scalars.jsonl): rates over each run's last {last} "
                       f"validations ({last} x {_counts(per_val)} episodes at the end of training), its best validation, "
-                      f"the best minus those last validations, and the largest drop of a validation below the run's "
-                      f"running best after {'half the run' if after is None else f'{after} frames'}.", ""]
+                      f"the best minus those last validations, the largest drop of a validation below the run's "
+                      f"running best after {'half the run' if after is None else f'{after} frames'}, and the frames to "
+                      f"its first validation with success ≥ {reach}.", ""]
     for scenario in scenarios:
         mine = [r for r in rows if r["scenario"] == scenario]
-        cells = [[r["group"], r["seeds"], *(interval_cell(r, k, d, interval=r["seeds"] > 1) for k, _, d in metrics),
+        cells = [[r["group"], r["seeds"], *(_val_cell(r, k, d) for k, _, d in metrics),
                   interval_cell(r, "p_improve", 2)] for r in mine]
         lines += [f"## {scenario}", ""]
         if scenario != VAL_SCENARIO:
@@ -238,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--last", type=int, default=5, help="--split val: validations at the end of training to average")
     p.add_argument("--after", type=int, default=None,
                    help="--split val: the largest drop counts validations after these frames (default: 2nd half)")
+    p.add_argument("--reach", type=float, default=0.5,
+                   help="--split val: report the frames to each run's first validation with success >= this (default 0.5)")
     p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print the rows as JSON instead of Markdown")
@@ -249,12 +267,14 @@ def main(argv: list[str] | None = None) -> int:
             raise Refused("--last must be >= 1")
         if args.after is not None and args.after < 0:
             raise Refused("--after must be >= 0")
+        if not 0.0 < args.reach <= 1.0:
+            raise Refused(f"--reach must lie in (0, 1], got {args.reach}")
         if args.out.exists() and not args.out.is_dir():
             raise Refused(f"--out: {args.out} is a file, not a folder")
         groups, flags, left_out = build_groups(args.sources)
         scenarios = [VAL_SCENARIO] if args.split == "val" else choose_scenarios(groups, args.scenarios)
         check_records(groups, scenarios, flags)
-        rows = compare(groups, scenarios, args.reps, args.last, args.after)
+        rows = compare(groups, scenarios, args.reps, args.last, args.after, args.reach)
     except (Refused, RecordError) as exc:  # a record read back that crowdrl would not write: file and field named
         p.exit(2, f"{p.prog}: {exc}\n")
     for job in left_out:
@@ -263,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"groups": {label: [str(r) for r in runs] for label, runs in groups}, "rows": rows,
               **({"left_out": left_out} if left_out else {})}
     atomic_write_json(args.out / "table.json", result)
-    text = markdown(rows, scenarios, groups[0][0], args.reps, args.last, args.after)
+    text = markdown(rows, scenarios, groups[0][0], args.reps, args.last, args.after, args.reach)
     atomic_write_bytes(args.out / "table.md", text.encode())
     print(dumps_json(result) if args.json else text)
     return 0

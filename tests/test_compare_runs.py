@@ -44,6 +44,20 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     assert none_after.returncode == 0, none_after.stderr[-2000:]
     assert all(r["late_drop"] == 0.0 for r in json.loads(none_after.stdout)["rows"])  # no validation after 40 frames
     assert "validation" in (tmp_path / "out" / "table.md").read_text()
+    # the frames to the first validation that reaches a success rate: A's seeds reach 0.9 at frame 20, B's seed 0
+    # only 0.6 (its seed 1 reaches 0.95 at 20); 0.96 is reached by none
+    assert rows["A"]["frames_to_reach"] == 10 and rows["A"]["reached"] == 2  # --reach 0.5 by default
+    b[0].joinpath("scalars.jsonl").write_text(b[0].joinpath("scalars.jsonl").read_text().replace('"val/success_rate": 0.95',
+                                                                                                 '"val/success_rate": 0.6'))
+    high = subprocess.run([*cmd, "--reach", "0.9"], capture_output=True, text=True, timeout=120)
+    assert high.returncode == 0, high.stderr[-2000:]
+    rows = {r["group"]: r for r in json.loads(high.stdout)["rows"]}
+    assert rows["A"]["frames_to_reach_per_seed"] == [20, 20] and rows["B"]["reached"] == 1
+    assert "| 1/2 reached (20) |" in (tmp_path / "out" / "table.md").read_text()
+    never = subprocess.run([*cmd, "--reach", "0.96"], capture_output=True, text=True, timeout=120)
+    assert never.returncode == 0 and "0/2 reached |" in (tmp_path / "out" / "table.md").read_text()
+    bad = subprocess.run([*cmd, "--reach", "0"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--reach must lie in (0, 1], got 0.0" in bad.stderr
     short = subprocess.run([*cmd[:-4], "--last", "9", "--group", "A=" + str(a[0]), "--group", "B=" + str(b[0])],
                            capture_output=True, text=True, timeout=120)
     assert short.returncode != 0 and "fewer than --last 9" in short.stderr
