@@ -75,3 +75,22 @@ def test_a_table_rebuilt_by_a_call_that_trains_nothing_keeps_how_the_training_ca
     (tmp_path / "table.json").write_text(json.dumps(old))
     assert recorded_wall(retable) == (600.0, None)
     assert "`reproduce.py` call that trained or tested the last runs: 10.0 min" in markdown(retable, [], 600.0, None)
+
+
+def test_new_runs_are_refused_in_a_folder_trained_at_another_frame_budget(tmp_path):
+    """budget=demo was 200k frames before issue 50 and 80k after: a variant added to a folder of the old demo
+    runs would have trained at 80k beside them, silently. Refused naming the budget; a rebuild that trains
+    nothing, and a folder whose runs used the budget's frames, are not."""
+    from crowdrl.reproduction.plan import PlanError, budget_frames, check_budget_of_new_runs, make_plan
+
+    plan = make_plan({"budget": "demo", "variants": ["egreedy", "rnd"], "seeds": [0], "out": str(tmp_path)})
+    old = tmp_path / "runs" / "egreedy-s0"
+    old.mkdir(parents=True)
+    (old / "config.yaml").write_text("train:\n  total_frames: 200000\n")
+    new = [(plan.methods[1], 0)]
+    with pytest.raises(PlanError, match=rf"^budget: demo trains {budget_frames('demo')} frames now, but the runs in "
+                                        rf".* were trained at 200000 \(e.g. egreedy-s0; .*budget=demo200k"):
+        check_budget_of_new_runs(plan, new)
+    check_budget_of_new_runs(plan, [])  # nothing to train: the table is rebuilt from its records
+    check_budget_of_new_runs(make_plan({"budget": "demo200k", "variants": ["egreedy", "rnd"], "seeds": [0],
+                                        "out": str(tmp_path)}), new)

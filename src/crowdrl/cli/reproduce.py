@@ -42,8 +42,8 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.cli import exit_with_error, hydra_command
 # the plan's names are this module's too (experiments/reproduce.py and the tests use them from here)
 from crowdrl.reproduction.plan import (BUDGETS, COUNTERFACTUAL_OFF, DEFAULT_ENCODER, KEYS, LAUNCHERS,  # noqa: F401
-                                       MANIFEST_FORMAT, Method, Plan, PlanError, check_manifest, check_out, check_runs,
-                                       eval_path, has_eval, is_trained, make_plan, run_overrides)
+                                       MANIFEST_FORMAT, Method, Plan, PlanError, check_budget_of_new_runs, check_manifest,
+                                       check_out, check_runs, eval_path, has_eval, is_trained, make_plan, run_overrides)
 
 TRAIN = [sys.executable, "-m", "crowdrl.cli.train"]  # the training runs: this interpreter, crowdrl's own train
 
@@ -192,6 +192,7 @@ def _reproduce(plan: Plan, start: float) -> dict[str, Any]:
     pending = [(m, s) for m in plan.methods for s in plan.seeds
                if not (is_trained(plan.run_dir(m, s)) and all(has_eval(eval_path(plan.run_dir(m, s), sc), plan.episodes)
                                                                for sc in plan.scenarios))]
+    check_budget_of_new_runs(plan, [(m, s) for m, s in pending if not is_trained(plan.run_dir(m, s))])
     done = len(plan.methods) * len(plan.seeds) - len(pending)
     print(f"{len(pending)} run(s) to train or finish, {done} already done -> {plan.out}", flush=True)
     failures: list[str] = []

@@ -310,6 +310,39 @@ def check_manifest(plan: Plan) -> None:
 
 
 
+def budget_frames(budget: str) -> int | None:
+    """``train.total_frames`` of ``conf/preset/<budget>.yaml`` as it reads now (``None``: the preset leaves it out)."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.load(config_dir() / "preset" / f"{budget}.yaml")
+    value = OmegaConf.select(node, "train.total_frames", default=None)
+    return None if value is None else int(value)
+
+
+def check_budget_of_new_runs(plan: Plan, pending: list[tuple[Method, int]]) -> None:
+    """Refuse (naming ``budget``) to train ``pending`` runs at another frame budget than the runs already in
+    ``plan.out`` (trained, or killed and resumable): a budget preset whose frames changed since the folder was
+    made (``budget=demo`` was 200k frames before issue 50, 80k after) would otherwise put runs of two budgets in
+    one table. A rerun that trains nothing (a table rebuilt from its records) is not refused."""
+    from omegaconf import OmegaConf
+
+    if not pending:
+        return
+    frames = budget_frames(plan.budget)
+    made = {}
+    for config in sorted((plan.out / "runs").glob("*/config.yaml")):
+        value = OmegaConf.select(OmegaConf.load(config), "train.total_frames", default=None)
+        if value is not None:
+            made[config.parent.name] = int(value)
+    other = {name: value for name, value in made.items() if value != frames}
+    if frames is not None and other:
+        name, value = next(iter(other.items()))
+        raise PlanError(f"budget: {plan.budget} trains {frames} frames now, but the runs in {plan.out} were trained at "
+                        f"{value} (e.g. {name}; the preset changed since the folder was made): new runs would not "
+                        f"compare with them; pass a fresh out=<folder> (with the budget whose frames they used, e.g. "
+                        f"budget=demo200k for the tables recorded as budget=demo before issue 50)")
+
+
 def run_overrides(plan: Plan, method: Method) -> list[str]:
     """The Hydra overrides of one training run (its seed and folder are added by the launcher)."""
     return [f"preset={plan.budget}", f"encoder={method.encoder}", f"exploration={method.variant}",
