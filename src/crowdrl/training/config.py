@@ -22,6 +22,7 @@ config that predates a key whose default has changed keeps the value it ran with
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 
 import crowdrl.exploration  # noqa: F401  (registers the shipped strategies and their schemas)
@@ -38,43 +39,33 @@ class ConfigError(ValueError):
     """A configuration value is missing, unknown or out of range."""
 
 
-@dataclass
-class EnvConfig:
-    """The scenario and its crowd: ``num_humans`` humans, or, with ``min_humans``/``max_humans``
-    (each defaults to ``num_humans``), a size drawn per episode from ``min_humans..max_humans``."""
+def _crowd_fields(keys: tuple[str, ...]) -> list[tuple[str, type, dataclasses.Field]]:
+    """:class:`~crowdrl.sim.config.CrowdConfig`'s ``keys`` as fields of the same names, types and defaults: each
+    key of the simulator is defined once, in ``CrowdConfig`` (whose comments say what it does)."""
+    hints = typing.get_type_hints(CrowdConfig)
+    return [(key, hints[key], field(default=getattr(CrowdConfig, key))) for key in keys]
 
-    scenario: str = "circle"
-    num_humans: int = 10
-    min_humans: int | None = None
-    max_humans: int | None = None
-    # the humans' step backend, for ORCA and social-force humans alike: "compiled" runs it through torch.compile
-    # (same numbers; compiles once per shape), "eager" as plain torch
-    orca_backend: str = "eager"
-    # obstacle geometry of corridor / doorway / room (CrowdConfig's keys and defaults; conf/env/*.yaml)
-    corridor_width: float = CrowdConfig.corridor_width
-    corridor_length: float = CrowdConfig.corridor_length
-    doorway_gap: float = CrowdConfig.doorway_gap
-    doorway_width: float = CrowdConfig.doorway_width
-    room_pillars: int = CrowdConfig.room_pillars
-    room_pillar_min: float = CrowdConfig.room_pillar_min
-    room_pillar_max: float = CrowdConfig.room_pillar_max
-    orca_time_horizon_obst: float = CrowdConfig.orca_time_horizon_obst
-    obstacle_tokens: int = CrowdConfig.obstacle_tokens  # the nearest obstacle edges the robot observes
-    # a 2-D lidar scan in the observation, every scenario ("lidar" [B, lidar_rays]; 0: none); the networks read
-    # it with encoder.lidar
-    lidar_rays: int = CrowdConfig.lidar_rays
-    lidar_range: float = CrowdConfig.lidar_range  # m, readings clipped to it
-    # how the humans move (orca, social_force, linear, or mixed: social_force_share and linear_share of the
-    # crowd, ORCA the rest) and whether they see the robot; the social-force parameters (socialforce 0.2.3's
-    # defaults) are read only where social-force humans may be present
-    human_model: str = CrowdConfig.human_model
-    social_force_share: float = CrowdConfig.social_force_share
-    linear_share: float = CrowdConfig.linear_share
-    robot_visible: bool = CrowdConfig.robot_visible
-    sf_tau: float = CrowdConfig.sf_tau
-    sf_v0: float = CrowdConfig.sf_v0
-    sf_sigma: float = CrowdConfig.sf_sigma
-    sf_substeps: int = CrowdConfig.sf_substeps
+
+# The scenario and its crowd: ``num_humans`` humans, or, with ``min_humans``/``max_humans`` (each defaults to
+# ``num_humans``), a size drawn per episode from ``min_humans..max_humans``; ``orca_backend`` runs the humans'
+# step (ORCA and social force alike) through torch.compile ("compiled": same numbers, compiled once per shape) or
+# as plain torch ("eager"); then CrowdConfig's keys: the obstacle geometry of corridor / doorway / room (and the
+# edges the robot observes), the lidar scan (read by the networks with encoder.lidar) and the humans' model
+# (orca, social_force, linear or mixed, whether they see the robot, and the social force's parameters, read only
+# where such humans may be present).
+EnvConfig = dataclasses.make_dataclass("EnvConfig", [
+    ("scenario", str, field(default="circle")),
+    ("num_humans", int, field(default=10)),
+    ("min_humans", typing.Optional[int], field(default=None)),
+    ("max_humans", typing.Optional[int], field(default=None)),
+    ("orca_backend", str, field(default="eager")),
+    *_crowd_fields((*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)),
+])
+EnvConfig.__module__ = __name__
+EnvConfig.__doc__ = ("The scenario and its crowd (``num_humans``, or a size drawn per episode from ``min_humans.."
+                     "max_humans``), the humans' step backend, and the simulator's keys of "
+                     ":class:`~crowdrl.sim.config.CrowdConfig` (obstacle geometry, lidar, the humans' model) with "
+                     "its names, types and defaults.")
 
 
 @dataclass
