@@ -207,7 +207,8 @@ def markdown(rows: list[dict], scenarios: list[str], first: str, reps: int, last
         if scenario != VAL_SCENARIO:
             cases = {n for r in mine for n in r.get("episodes_per_seed", [r["episodes"]])}
             lines += [f"{_counts(cases)} test cases per run.", ""]
-        lines += [markdown_table(["group", "seeds", *(h for _, h, _ in metrics), "P(improve)"], cells), ""]
+        headers = [h.replace("reach", f"{reach:g}") for _, h, _ in metrics]
+        lines += [markdown_table(["group", "seeds", *headers, "P(improve)"], cells), ""]
     return "\n".join(lines)
 
 

@@ -53,7 +53,8 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     assert high.returncode == 0, high.stderr[-2000:]
     rows = {r["group"]: r for r in json.loads(high.stdout)["rows"]}
     assert rows["A"]["frames_to_reach_per_seed"] == [20, 20] and rows["B"]["reached"] == 1
-    assert "| 1/2 reached (20) |" in (tmp_path / "out" / "table.md").read_text()
+    text = (tmp_path / "out" / "table.md").read_text()
+    assert "| 1/2 reached (20) |" in text and "frames to first val. ≥ 0.9" in text
     never = subprocess.run([*cmd, "--reach", "0.96"], capture_output=True, text=True, timeout=120)
     assert never.returncode == 0 and "0/2 reached |" in (tmp_path / "out" / "table.md").read_text()
     bad = subprocess.run([*cmd, "--reach", "0"], capture_output=True, text=True, timeout=120)
