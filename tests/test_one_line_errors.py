@@ -70,9 +70,9 @@ EVALUATE_KEYS = ("allowed: checkpoint, policy, eval.seed, eval.episodes, eval.nu
                  "is eval.num_humans")
 EXPORT_KEYS = "allowed: checkpoint, out, format, opset, check, overwrite"
 REPRODUCE_KEYS = ("allowed: budget, encoders, variants, seeds, train_scenario, scenarios, episodes, jobs, launcher, "
-                  "threads, reps, planning, train_learner, counterfactual.mode, counterfactual.actions, counterfactual.k, "
-                  "counterfactual.weight, train.target_tau, train.huber_delta, train.grad_clip_norm, train.lr_end, "
-                  "train.q_layer_norm, ceiling, out")
+                  "threads, reps, planning, lidar, lidar_rays, train_learner, counterfactual.mode, counterfactual.actions, "
+                  "counterfactual.k, counterfactual.weight, train.target_tau, train.huber_delta, train.grad_clip_norm, "
+                  "train.lr_end, train.q_layer_norm, ceiling, out")
 
 
 @pytest.mark.parametrize("module, args, words", [
