@@ -23,7 +23,7 @@ one step ahead).
   (``entities=True``) reads them as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`)
   in every predicted state.
 * Lidar: a network that reads the scan (``lidar_key``) reads the observed one at the root and, in every
-  predicted state, the scan :func:`crowdrl.sim.lidar.lidar_scan` computes from the predicted robot pose
+  predicted state, the scan :func:`crowdrl.sim.lidar.robot_scan` computes from the predicted robot pose
   against the predicted humans' discs and the observed edges (the walls beyond them are not in the
   observation; in open space the predicted scan is exact whenever the prediction is).
 * A predicted collision or goal ends the look-ahead (``end̂``): such a step is scored by its
@@ -53,7 +53,7 @@ from crowdrl.envs.robot_centric import entity_tokens, obstacles_centric, robot_c
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.crowd import step_reward
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
-from crowdrl.sim.lidar import lidar_scan
+from crowdrl.sim.lidar import robot_scan
 from crowdrl.sim.lookahead import look_ahead
 
 
@@ -163,17 +163,13 @@ class OnlinePlanner(TensorDictModuleBase):
     def scan(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, obstacles: Tensor | None = None,
              obstacles_mask: Tensor | None = None) -> Tensor:
         """The lidar scan ``[M, R]`` of a (predicted) state: from the robot's pose against the humans' discs and
-        the observed edges (:func:`crowdrl.sim.lidar.lidar_scan`, the env's own scan function)."""
-        cfg = self.config
+        the observed edges (:func:`crowdrl.sim.lidar.robot_scan`, the env's own scan function)."""
         segments = None
         if obstacles is not None:
             valid = (torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device)
                      if obstacles_mask is None else obstacles_mask)
             segments = (obstacles[..., 0:2], obstacles[..., 2:4], valid)
-        present = (torch.ones(humans.shape[:2], dtype=torch.bool, device=humans.device)
-                   if humans_mask is None else humans_mask)
-        return lidar_scan(robot[:, 0:2], robot[:, 8], cfg.lidar_rays, cfg.lidar_range, segments=segments,
-                          discs=(humans[..., 0:2], cfg.human_radius, present))
+        return robot_scan(self.config, robot[:, 0:2], robot[:, 8], humans[..., 0:2], humans_mask, segments)
 
     def scores(self, robot: Tensor, humans: Tensor, humans_mask: Tensor | None, q: Tensor, depth: int,
                obstacles: Tensor | None = None, obstacles_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -25,7 +25,7 @@ from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.obstacles import obstacle_segments
 from crowdrl.sim.state import CrowdState
 
-__all__ = ["lidar_angles", "lidar_scan", "observe_lidar"]
+__all__ = ["lidar_angles", "lidar_scan", "observe_lidar", "robot_scan"]
 
 
 def lidar_angles(heading: Tensor, num_rays: int) -> Tensor:
@@ -125,11 +125,22 @@ def lidar_scan(origin: Tensor, heading: Tensor, num_rays: int, max_range: float,
     return out
 
 
+def robot_scan(config: CrowdConfig, position: Tensor, heading: Tensor, human_position: Tensor,
+               human_mask: Tensor | None = None, segments: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
+    """The robot's scan ``[B, config.lidar_rays]`` from ``position [B, 2]`` along ``heading [B]``, against the
+    humans' discs at ``human_position [B, N, 2]`` (radius ``config.human_radius``; ``human_mask`` ``[B, N]``, the
+    present ones, ``None``: all) and the wall ``segments`` (``None``: none), clipped at ``config.lidar_range``:
+    what :func:`observe_lidar` observes, and what the planner and counterfactual experience compute for a pose
+    the env did not visit."""
+    if human_mask is None:
+        human_mask = torch.ones(human_position.shape[:2], dtype=torch.bool, device=human_position.device)
+    return lidar_scan(position, heading, config.lidar_rays, config.lidar_range, segments=segments,
+                      discs=(human_position, config.human_radius, human_mask))
+
+
 def observe_lidar(config: CrowdConfig, state: CrowdState) -> Tensor:
-    """The robot's scan ``[B, config.lidar_rays]`` in ``state``: from its centre along its heading, against
-    the obstacle edges and the present humans' discs (radius ``config.human_radius``), clipped at
-    ``config.lidar_range``. The ``"lidar"`` observation of :class:`~crowdrl.envs.CrowdNavEnv`."""
+    """The robot's scan ``[B, config.lidar_rays]`` in ``state`` (:func:`robot_scan`): against the obstacle edges
+    and the present humans. The ``"lidar"`` observation of :class:`~crowdrl.envs.CrowdNavEnv`."""
     segments = obstacle_segments(state.obstacles, state.obstacle_mask) if state.has_obstacles else None
-    discs = (state.human_position, config.human_radius, state.human_mask)
-    return lidar_scan(state.robot_position, state.robot_heading, config.lidar_rays, config.lidar_range,
-                      segments=segments, discs=discs)
+    return robot_scan(config, state.robot_position, state.robot_heading, state.human_position, state.human_mask,
+                      segments)

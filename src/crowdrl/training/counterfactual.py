@@ -10,7 +10,7 @@ For a sampled transition ``(s, a, r, s')`` and ``k`` alternative actions ``a'`` 
   ignore the robot (ORCA with an invisible robot), so their step is the same whatever it does;
 * the next observation through the env's own transform (:class:`crowdrl.envs.RobotCentric`, and
   the observed obstacle edges re-selected from the new position, as the env does; a network that reads
-  the lidar scan gets the env's own scan from the new pose, :func:`crowdrl.sim.lidar.lidar_scan` against
+  the lidar scan gets the env's own scan from the new pose, :func:`crowdrl.sim.lidar.robot_scan` against
   the episode's walls and the humans' real next discs);
 * ``terminated' = collided or reached``; a timeout stays a truncation (the target bootstraps), and
   the bootstrap discount is ``γ`` (one step).
@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from crowdrl.envs.robot_centric import RobotCentric
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, wrap_angle
-from crowdrl.sim.lidar import lidar_scan
+from crowdrl.sim.lidar import robot_scan
 from crowdrl.sim.lookahead import look_ahead
 from crowdrl.sim.obstacles import nearest_edges, obstacle_segments
 from crowdrl.training.facts import LIDAR_KEY
@@ -176,11 +176,8 @@ class CounterfactualExperience(UpdatePart):
         nxt = self.observe(nxt)
         if LIDAR_KEY in self.obs_keys:  # the scan from the new pose, as the env computes it
             segments = obstacle_segments(repeat(walls), repeat(walls_mask)) if self.has_map else None
-            present = repeat(mask) if mask is not None else torch.ones(B * k, humans_next.shape[1], dtype=torch.bool,
-                                                                        device=robot.device)
-            nxt.set(LIDAR_KEY, lidar_scan(robot_next[:, 0:2], robot_next[:, 8], cfg.lidar_rays, cfg.lidar_range,
-                                          segments=segments, discs=(repeat(humans_next)[..., 0:2], cfg.human_radius,
-                                                                    present)))
+            nxt.set(LIDAR_KEY, robot_scan(cfg, robot_next[:, 0:2], robot_next[:, 8], repeat(humans_next)[..., 0:2],
+                                          None if mask is None else repeat(mask), segments))
 
         def grouped(x: Tensor) -> Tensor:  # [B*k, ...] -> [B, k, ...]
             return x.reshape(B, k, *x.shape[1:])
