@@ -4,6 +4,7 @@
         --checkpoints pretrained/sgd3qn-planning-egreedy-counterfactual-polyak-episodes-s{0,1,2}
     python experiments/ceiling_gap.py --ceiling val.json --checkpoints ... --depth 2 --width 10   # act-time planning
     python experiments/ceiling_gap.py --ceiling val.json --checkpoints ... --safety 2             # the safety check
+    python experiments/ceiling_gap.py --ceiling val.json --checkpoints ... --depth 2 --progress-bias 0.5   # shorter paths
 
 Each checkpoint acts through its own actor (``make_actor``: the planner it was trained with, or the depth and
 width given) on the ceiling file's cases, by ``env.rollout`` on the training env maker, under the deterministic
@@ -36,6 +37,7 @@ from crowdrl.tables import markdown_table
 from crowdrl.training.checkpoint import checkpoint_path, load_trained_network, load_trained_predictor
 from crowdrl.training.config import crowd_config
 from crowdrl.training.factories import make_actor, make_env
+from crowdrl.training.pipeline import act_with
 
 SLOW = 0.2  # m/s: a step at or below this speed counts as hesitation
 
@@ -107,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=None, help="act with this planning width (default: the checkpoint's)")
     p.add_argument("--safety", type=int, default=None,
                    help="act with this safety-check horizon in steps (planning.safety_horizon; default: the checkpoint's)")
+    p.add_argument("--progress-bias", type=float, default=None,
+                   help="act with this progress bias (planning.progress_bias; default: the checkpoint's)")
     p.add_argument("--batch", type=int, default=250, help="episodes stepped at once")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path, default=None, help="write the rows here")
@@ -124,12 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for ck in a.checkpoints:
         run, net, data = load_trained_network(ck)
-        if a.depth is not None or a.width is not None or a.safety is not None:
-            if not run.planning.enabled:
-                p.error(f"--depth/--width/--safety: {ck} acts without planning")
-            run = dataclasses.replace(run, planning=dataclasses.replace(
-                run.planning, depth=a.depth or run.planning.depth, width=a.width or run.planning.width,
-                safety_horizon=run.planning.safety_horizon if a.safety is None else a.safety))
+        given = {k: v for k, v in (("depth", a.depth), ("width", a.width), ("safety_horizon", a.safety),
+                                   ("progress_bias", a.progress_bias)) if v is not None}
+        if given:
+            try:
+                run = act_with(run, given, prefix="--")
+            except ValueError as exc:
+                p.error(f"{ck}: {exc}")
         try:
             check_stream(ceiling, crowd_config(run, scenario=ceiling.scenario), split=ceiling.split, seed=ceiling.seed,
                          cases=cases)
@@ -138,15 +143,16 @@ def main(argv: list[str] | None = None) -> int:
         predictor = load_trained_predictor(run, data, checkpoint_path(ck))
         agent = rollout_cases(run, net, predictor, ceiling, cases, a.batch)
         rows.append({"checkpoint": str(ck), "depth": run.planning.depth, "width": run.planning.width,
-                     "safety_horizon": run.planning.safety_horizon,
+                     "safety_horizon": run.planning.safety_horizon, "progress_bias": run.planning.progress_bias,
                      **analyse(ceiling, agent)})
         print(f"done {ck}", file=sys.stderr, flush=True)
     keys = ["success", "avoidable", "unavoidable", "time_over", "over_from_detour", "over_from_speed", "path_agent",
             "path_ceiling", "speed_agent", "speed_ceiling", "slow_steps_agent", "slow_steps_ceiling", "ms_per_step"]
     print(f"{cases} {ceiling.scenario} {ceiling.split} cases, seed {ceiling.seed}; ceiling: "
           f"{ceiling.counts()[SOLVED]} solved, mean time {ceiling.mean_time():.2f} s")
-    print(markdown_table(["checkpoint", "depth x width", "safety", *keys],
+    print(markdown_table(["checkpoint", "depth x width", "safety", "progress bias", *keys],
                          [[Path(r["checkpoint"]).name, f"{r['depth']}x{r['width']}", str(r["safety_horizon"]),
+                           f"{r['progress_bias']:g}",
                            *(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in keys)] for r in rows]))
     if a.json:
         a.json.write_text(json.dumps({"ceiling": str(a.ceiling), "cases": cases, "rows": rows}, indent=1))

@@ -41,6 +41,7 @@ CASES = {
     "sgd3qn-learned": {"env": {"num_humans": 5}},
     "sgd3qn-variable": {"env": {"num_humans": 6, "min_humans": 2}},
     "depth2-safety": {"env": {"num_humans": 4}, "planning": {"depth": 2, "width": 3, "safety_horizon": 2}},
+    "depth2-progress-bias": {"env": {"num_humans": 4}, "planning": {"depth": 2, "width": 3, "progress_bias": 1.0}},
     "sarl-const_vel": {"encoder": {"name": "sarl"}, "env": {"num_humans": 5}, "planning": {"predictor": "const_vel"}},
     "lstm_rl": {"encoder": {"name": "lstm_rl"}, "env": {"num_humans": 4}},
 }
@@ -77,6 +78,7 @@ def test_the_exported_planner_acts_as_the_torch_planner_on_every_step(tmp_path, 
     folder = planning_folder(tmp_path / "run", CASES[case])
     info = export_onnx(folder, tmp_path / "policy.onnx")
     assert info.planner and not info.planning_dropped and info.metadata["crowdrl.policy"] == "planner"
+    assert read_exported(info.path).run.planning.progress_bias == CASES[case].get("planning", {}).get("progress_bias", 0)
     r = compare_on_test_cases(folder, info.path, episodes=12, batch=12)
     assert r["steps"] > 12 and r["differ"] == 0, r
     assert r["rounding"] <= max(1, r["steps"] // 500), r

@@ -65,7 +65,7 @@ def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch,
 
 EVALUATE_KEYS = ("allowed: checkpoint, policy, eval.seed, eval.episodes, eval.num_humans, eval.human_model, "
                  "eval.robot_visible, eval.social_force_share, eval.linear_share, eval.batch, eval.record_episode, eval.ceiling, "
-                 "eval.planning_depth, eval.planning_width, eval.planning_safety_horizon, "
+                 "eval.planning_depth, eval.planning_width, eval.planning_safety_horizon, eval.planning_progress_bias, "
                  "threads, device, env=<scenario> (the crowd size "
                  "is eval.num_humans")
 EXPORT_KEYS = "allowed: checkpoint, out, format, opset, check, overwrite"

@@ -43,10 +43,12 @@ def is_onnx(checkpoint: Path | str | None) -> bool:
     return checkpoint is not None and str(checkpoint).lower().endswith(".onnx")
 
 
-def acted(run: RunConfig, key: str) -> int:
+def acted(run: RunConfig, key: str) -> float:
     """The planner setting ``key`` (of :data:`ACT_KEYS`) ``run`` acts with, for a record: 0 for ``depth`` and
-    ``safety_horizon`` when it acts without planning."""
-    return getattr(run.planning, key) if run.planning.enabled or key == "width" else 0
+    ``safety_horizon`` (0.0 for ``progress_bias``) when it acts without planning."""
+    if run.planning.enabled or key == "width":
+        return getattr(run.planning, key)
+    return 0.0 if key == "progress_bias" else 0
 
 
 def _read_ceiling(path: Path | str | None, cfg: CrowdConfig, seed: int, episodes: int):
@@ -85,7 +87,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
                   record_episode: int | None = None, device: str = "cpu", human_model: str | None = None,
                   robot_visible: bool | None = None, social_force_share: float | None = None,
                   linear_share: float | None = None, ceiling: Path | str | None = None,
-                  planning: dict[str, int] | None = None) -> tuple[dict[str, Any], Trajectory | None]:
+                  planning: dict[str, float | None] | None = None) -> tuple[dict[str, Any], Trajectory | None]:
     """Evaluate a trained ``checkpoint`` (run folder or ``.pt``) or a baseline ``policy`` by name on
     test cases ``0 .. episodes-1`` of test stream ``seed``; returns the ``eval.json`` record and the
     recorded trajectory. ``human_model``/``robot_visible`` (``None``: the checkpoint's; ORCA humans blind to
@@ -95,8 +97,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     the argument. ``ceiling``: a ceiling file of the same test cases (:mod:`crowdrl.evaluation.ceiling`); the
     record then adds the avoidable and unavoidable failures and the time over the ceiling (a file of another
     stream is refused before anything runs, naming the mismatch). ``planning``: act with these of the
-    checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``; no retraining; ``depth`` 0:
-    greedy on Q, planning off); the record then shows them. A ``checkpoint`` ending in ``.onnx`` is a model
+    checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``, ``progress_bias``; no
+    retraining; ``depth`` 0: greedy on Q, planning off); the record then shows them. A ``checkpoint`` ending in ``.onnx`` is a model
     written by ``crowdrl-export``, evaluated through onnxruntime (:class:`~crowdrl.onnx_policy.OnnxPolicy`)
     on the same cases and through the same rollout, with the same record (its policy name ending in ``+onnx``);
     its planning is fixed at export (``planning`` refused), and it runs on the CPU."""
@@ -161,7 +163,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
             m = exported.metadata
             raise ValueError(f"eval.planning_{key}: {checkpoint}'s planning is fixed at export (planning_depth="
                              f"{m.get('crowdrl.planning_depth', 0)}, planning_width={m.get('crowdrl.planning_width', 0)}, "
-                             f"planning_safety_horizon={m.get('crowdrl.planning_safety_horizon', 0)}); export it again "
+                             f"planning_safety_horizon={m.get('crowdrl.planning_safety_horizon', 0)}, "
+                             f"planning_progress_bias={m.get('crowdrl.planning_progress_bias', 0.0)}); export it again "
                              f"with planning_{key}=..., or evaluate the checkpoint")
         run, net, data = exported.run, None, {"frames": exported.frames}
     else:
@@ -215,12 +218,12 @@ def compare_on_test_cases(checkpoint: Path | str, model: Path | str, *, scenario
     through ``evaluate.py``'s path, :func:`evaluate_spec`) and, along the torch
     policy's own trajectories, the steps where the model's action is identical (``identical``), differs by
     float rounding (``rounding``) or otherwise (``differ``), of ``steps`` acted in running episodes."""
+    from crowdrl.export import planner_settings
     from crowdrl.onnx_policy import ComparedPolicy, OnnxPolicy
 
     exported = OnnxPolicy(model, threads=threads)
     run, net, data = load_trained_network(checkpoint)
-    settings = {k: int(exported.model.metadata.get(f"crowdrl.planning_{k}", 0)) for k in ("depth", "width",
-                                                                                          "safety_horizon")}
+    settings = planner_settings(exported.model.metadata) if exported.model.plans else {}
     if exported.model.plans and not run.planning.enabled:
         raise ValueError(f"model: {exported.model.path} holds a planner, {checkpoint_path(checkpoint)} acts without "
                          "one: not its export")

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import tempfile
 import warnings
@@ -160,7 +161,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     """Write the acting policy of ``checkpoint`` (a run folder or a ``.pt``) to ``path`` as ONNX: its online
     planner whole when it acts with one (:class:`PlannerPolicy`), else its greedy Q policy.
 
-    ``planning``: the planner settings ``depth``, ``width``, ``safety_horizon`` to export instead of the
+    ``planning``: the planner settings ``depth``, ``width``, ``safety_horizon``, ``progress_bias`` to export instead of the
     checkpoint's (``None`` values: its own); ``depth`` 0 exports the greedy Q policy of a planning checkpoint
     (it acts differently: noted in :attr:`ExportInfo.notes` and the metadata). Uses torch's TorchScript-based
     exporter (``dynamo=False``). With ``check`` (and onnxruntime installed) the written model is run on random
@@ -199,6 +200,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         p = run.planning
         policy: nn.Module = PlannerPolicy(OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth,
                                                         width=p.width, safety_horizon=p.safety_horizon,
+                                                        progress_bias=p.progress_bias,
                                                         lidar_key=LIDAR_INPUT if scan else None)).eval()
         outputs, layout, width = PLANNER_OUTPUTS, "world", 5
     else:
@@ -229,7 +231,8 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     p = run.planning
     if plans:
         planning_text = (f"on: the online planner, planning.depth={p.depth}, planning.width={p.width}, "
-                         f"planning.safety_horizon={p.safety_horizon}, predictor={p.predictor}, gamma={run.train.gamma!r}")
+                         f"planning.safety_horizon={p.safety_horizon}, planning.progress_bias={p.progress_bias!r}, "
+                         f"predictor={p.predictor}, gamma={run.train.gamma!r}")
     elif dropped:
         tp = trained.planning
         planning_text = (f"dropped (planning_depth=0): the checkpoint acts with online planning (planning.depth={tp.depth}, "
@@ -284,6 +287,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         "crowdrl.planning_depth": str(p.depth if plans else 0),
         "crowdrl.planning_width": str(p.width if plans else 0),
         "crowdrl.planning_safety_horizon": str(p.safety_horizon if plans else 0),
+        "crowdrl.planning_progress_bias": repr(float(p.progress_bias) if plans else 0.0),
         "crowdrl.frames": str(data.get("frames", "unknown")),
         "crowdrl.fingerprint": config_fingerprint(to_dict(trained)),
         "crowdrl.config": json.dumps(to_dict(trained), sort_keys=True),
@@ -339,6 +343,22 @@ class ExportedModel:
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads, options.inter_op_num_threads = int(threads), 1
         return onnxruntime.InferenceSession(self.payload, options, providers=["CPUExecutionProvider"])
+
+
+def planner_settings(metadata: dict[str, str]) -> dict[str, float]:
+    """The planner settings an exported model's ``metadata`` holds (``crowdrl.planning_<key>``, one per
+    :data:`~crowdrl.training.pipeline.ACT_KEYS`): integers, and the progress bias as a number >= 0 (0 for models
+    written before it existed). ``KeyError`` or ``ValueError`` for a missing or malformed one.
+
+    >>> planner_settings({"crowdrl.planning_depth": "1", "crowdrl.planning_width": "10",
+    ...                   "crowdrl.planning_safety_horizon": "0"})
+    {'depth': 1, 'width': 10, 'safety_horizon': 0, 'progress_bias': 0.0}
+    """
+    settings: dict[str, float] = {k: int(metadata[f"crowdrl.planning_{k}"]) for k in ("depth", "width", "safety_horizon")}
+    bias = float(metadata.get("crowdrl.planning_progress_bias", "0.0"))
+    if not math.isfinite(bias) or bias < 0:
+        raise ValueError(f"crowdrl.planning_progress_bias: must be a finite number >= 0, got {bias!r}")
+    return settings | {"progress_bias": bias}
 
 
 def read_exported(path: Path | str) -> ExportedModel:
@@ -400,13 +420,13 @@ def read_exported(path: Path | str) -> ExportedModel:
 
     if meta.get("crowdrl.policy") == "planner":
         try:
-            settings = {k: int(meta[f"crowdrl.planning_{k}"]) for k in ("depth", "width", "safety_horizon")}
+            settings = planner_settings(meta)
         except (KeyError, ValueError):
-            raise CheckpointError(f"{path}: its planner settings (crowdrl.planning_depth, _width, _safety_horizon) "
-                                  "are missing or not integers") from None
+            raise CheckpointError(f"{path}: its planner settings (crowdrl.planning_depth, _width, _safety_horizon "
+                                  "integers, _progress_bias a number >= 0) are missing or malformed") from None
         run = replace(run, planning=replace(run.planning, enabled=True, **settings))
     else:
-        run = replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0))
+        run = replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0, progress_bias=0.0))
     humans = meta.get("crowdrl.humans", "")
     fixed = int(humans[2:].split()[0]) if humans.startswith("N=") else None
     frames = meta.get("crowdrl.frames", "")

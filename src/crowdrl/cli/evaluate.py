@@ -131,7 +131,8 @@ def run_evaluation(out: Path, cfg: DictConfig) -> dict:
                                      human_model=e.human_model, robot_visible=e.robot_visible,
                                      social_force_share=e.social_force_share, linear_share=e.linear_share,
                                      ceiling=e.ceiling, planning={"depth": e.planning_depth, "width": e.planning_width,
-                                                                  "safety_horizon": e.planning_safety_horizon})
+                                                                  "safety_horizon": e.planning_safety_horizon,
+                                                                  "progress_bias": e.planning_progress_bias})
     except (ValueError, ConfigError, CheckpointError) as exc:
         from crowdrl.training.run_folder import discard_new_folders
 

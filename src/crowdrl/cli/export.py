@@ -86,7 +86,8 @@ def main(cfg: DictConfig) -> dict:
     try:
         info = export_onnx(c.checkpoint, c.out, opset=c.opset, check=c.check,
                            planning={"depth": c.planning_depth, "width": c.planning_width,
-                                     "safety_horizon": c.planning_safety_horizon})
+                                     "safety_horizon": c.planning_safety_horizon,
+                                     "progress_bias": c.planning_progress_bias})
     except CheckpointError as exc:
         fail(f"checkpoint: {exc}")
     except ValueError as exc:  # export_onnx names the argument (out, planning_*)

@@ -36,10 +36,11 @@ class EvalConfig:
     # over the ceiling to the record
     ceiling: Optional[str] = None
     # act with another planner than the checkpoint's (no retraining; null: the checkpoint's): its depth (0: planning
-    # off, greedy on Q), width and run-time safety check (planning.safety_horizon)
+    # off, greedy on Q), width, run-time safety check (planning.safety_horizon) and progress bias (planning.progress_bias)
     planning_depth: Optional[int] = None
     planning_width: Optional[int] = None
     planning_safety_horizon: Optional[int] = None
+    planning_progress_bias: Optional[float] = None
 
 
 @dataclass
@@ -79,6 +80,7 @@ class ExportConfig:
     planning_depth: Optional[int] = None
     planning_width: Optional[int] = None
     planning_safety_horizon: Optional[int] = None
+    planning_progress_bias: Optional[float] = None
 
 
 @dataclass
@@ -102,6 +104,7 @@ class CeilingConfig:
     planning_depth: Optional[int] = None
     planning_width: Optional[int] = None
     planning_safety_horizon: Optional[int] = None
+    planning_progress_bias: Optional[float] = None
     threads: int = 1
 
 

@@ -9,6 +9,12 @@ predicts the state after each of them and scores it:
 and acts by the best ``score_depth``. ``depth = 1`` is upstream's planner (the top 10 actions,
 one step ahead).
 
+* Progress bias (``progress_bias`` κ > 0; off by default): the step's progress term of the reward counts
+  (1 + κ) times in r̂, i.e. ``score_d`` gains ½ · κ · ``progress_factor`` · (d_goal before − d_goal after) at
+  every level of the look-ahead. It trades some of the learned value's caution for shorter paths, at act time
+  and without retraining (``docs/ceiling.md``, "Time over the ceiling"); the reward the agent trains on is
+  unchanged.
+
 * ŝ′: the robot's next state from the exact unicycle kinematics (the simulator's one-step model,
   :func:`crowdrl.sim.lookahead.look_ahead`, shared with counterfactual experience); the humans' from a
   predictor (:mod:`crowdrl.models.predictor`), one prediction per state (the humans do not see
@@ -42,6 +48,7 @@ plain actor calls it, so noisy or dropout heads act inside the planner as they w
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -75,13 +82,14 @@ class OnlinePlanner(TensorDictModuleBase):
         config: the simulator's constants (time step, radii, reward); unicycle kinematics only.
         gamma: the discount per step γ̄.
         depth, width: look-ahead depth ``>= 1`` and candidates per state ``1..A``.
-        safety_horizon: steps of the safety check (0: off; see the module docstring).
         robot_key, humans_key: the world-frame observation keys; ``mask_key``: the crowd mask,
             read when the tensordict has it (``None``: never).
         entities: ``net`` reads entity tokens (humans and obstacle edges,
             ``net(robot_rc, entities_rc, entities_mask)``), as networks trained among obstacles do.
         obstacles_key: the observed obstacle edges ``[*, K, 4]`` (with ``obstacles_key + "_mask"``),
             read when the tensordict has them.
+        safety_horizon: steps of the safety check (0: off; see the module docstring).
+        progress_bias: κ >= 0, the extra weight of the step's progress in the scores (0: off; see above).
         lidar_key: the lidar scan ``[*, R]`` a network with ``encoder.lidar`` reads last (``None``: it reads none).
 
     Writes ``"action"`` ``[*]``, ``"action_value"`` ``[*, A]`` (Q(s, ·)) and
@@ -113,7 +121,8 @@ class OnlinePlanner(TensorDictModuleBase):
     def __init__(self, net: nn.Module, predictor: nn.Module, config: CrowdConfig, *, gamma: float,
                  depth: int = 1, width: int = 10, robot_key: str = "robot", humans_key: str = "humans",
                  mask_key: str | None = "humans_mask", entities: bool = False,
-                 obstacles_key: str = "obstacles", safety_horizon: int = 0, lidar_key: str | None = None) -> None:
+                 obstacles_key: str = "obstacles", safety_horizon: int = 0, lidar_key: str | None = None,
+                 progress_bias: float = 0.0) -> None:
         super().__init__()
         if config.robot_kinematics != "unicycle":
             raise ValueError(f"planning needs the unicycle's discrete actions, got {config.robot_kinematics!r}")
@@ -126,6 +135,9 @@ class OnlinePlanner(TensorDictModuleBase):
         if isinstance(safety_horizon, bool) or int(safety_horizon) != safety_horizon or not 0 <= safety_horizon <= 20:
             raise ValueError(f"safety_horizon must be an integer in 0..20 (steps; 0: off), got {safety_horizon!r}")
         self.safety_horizon = int(safety_horizon)
+        if isinstance(progress_bias, bool) or not math.isfinite(float(progress_bias)) or progress_bias < 0:
+            raise ValueError(f"progress_bias must be a finite number >= 0 (0: off), got {progress_bias!r}")
+        self.progress_bias = float(progress_bias)
         self.net = net
         self.predictor = predictor
         self.config = config
@@ -201,7 +213,12 @@ class OnlinePlanner(TensorDictModuleBase):
                                 flat_obstacles_mask)[0].amax(-1)
         ended = judged.collided | judged.reached
         value = torch.where(ended, 0.0, value.reshape(M, w))
-        return 0.5 * (judged.reward + self.gamma * value + q_top), cand
+        reward = judged.reward
+        if self.progress_bias > 0:  # the step's progress counted (1 + κ) times
+            goal = robot[:, None, 5:7]
+            progress = (goal - robot[:, None, 0:2]).norm(dim=-1) - (goal - robot_next[..., 0:2]).norm(dim=-1)
+            reward = reward + self.progress_bias * cfg.progress_factor * progress
+        return 0.5 * (reward + self.gamma * value + q_top), cand
 
     @staticmethod
     def _walls(obstacles: Tensor | None, obstacles_mask: Tensor | None) -> tuple[Tensor | None, Tensor | None]:

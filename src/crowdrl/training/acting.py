@@ -104,7 +104,8 @@ class PlannedActing(GreedyActing):
         p = self.section
         return OnlinePlanner(net, predictor, crowd, gamma=self.gamma, depth=p.depth, width=p.width,
                              mask_key=MASK_KEY if crowd.variable_crowd else None, entities=self.entities,
-                             lidar_key=LIDAR_KEY if self.lidar else None, safety_horizon=p.safety_horizon)
+                             lidar_key=LIDAR_KEY if self.lidar else None, safety_horizon=p.safety_horizon,
+                             progress_bias=p.progress_bias)
 
     def learners(self) -> list[AuxiliaryLearner]:
         """The learned predictor's learner while training (none for ``const_vel`` or when only acting)."""

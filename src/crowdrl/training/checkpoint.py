@@ -105,8 +105,9 @@ def fingerprinted(config: dict) -> dict[str, Any]:
         train.pop(k, None)
     keep["train"] = train
     if config.get("planning", {}).get("enabled"):  # planning off: hashed as a config without the section
-        # the safety check off: hashed as a planner without the key
-        keep["planning"] = {k: v for k, v in config["planning"].items() if not (k == "safety_horizon" and v == 0)}
+        # the safety check and the progress bias off: hashed as a planner without the key
+        keep["planning"] = {k: v for k, v in config["planning"].items()
+                            if not (k in ("safety_horizon", "progress_bias") and v == 0)}
     return keep
 
 

@@ -184,6 +184,9 @@ class PlanningConfig:
     # a run-time safety check (crowdrl.policies.planning): act by no action that collides with the predicted crowd
     # within this many steps when held; 0: off (as upstream, and every run recorded before the key)
     safety_horizon: int = 0
+    # the step's progress counted (1 + progress_bias) times in the planner's scores (crowdrl.policies.planning): shorter
+    # paths for some of the learned value's caution, at act time; 0: off (as upstream, and every run recorded before the key)
+    progress_bias: float = 0.0
 
 
 @dataclass

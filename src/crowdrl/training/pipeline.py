@@ -194,10 +194,11 @@ def policy_name(run: RunConfig, *, onnx: bool = False) -> str:
             + ("+onnx" if onnx else ""))
 
 
-ACT_KEYS = ("depth", "width", "safety_horizon")  # the planner settings an evaluation may change (eval.planning_*)
+# the planner settings an evaluation may change (eval.planning_*)
+ACT_KEYS = ("depth", "width", "safety_horizon", "progress_bias")
 
 
-def act_with(run: RunConfig, acting: dict[str, int], prefix: str = "eval.planning_") -> RunConfig:
+def act_with(run: RunConfig, acting: dict[str, float], prefix: str = "eval.planning_") -> RunConfig:
     """``run`` acting with the planner settings ``acting`` (names in :data:`ACT_KEYS`), checked as train checks
     them; ``ValueError`` naming ``<prefix><key>``. ``depth`` 0 turns planning off: the checkpoint then acts
     greedily on Q (with no other planner setting given)."""
@@ -215,7 +216,7 @@ def act_with(run: RunConfig, acting: dict[str, int], prefix: str = "eval.plannin
         others = sorted(set(acting) - {"depth"})
         if others:
             raise ValueError(f"{prefix}{others[0]}: planning is off ({prefix}depth=0); leave {prefix}{others[0]} out")
-        return replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0))
+        return replace(run, planning=replace(run.planning, enabled=False, safety_horizon=0, progress_bias=0.0))
     if not run.planning.enabled:
         raise ValueError(f"{prefix}{next(iter(acting))}: the checkpoint acts without planning (planning.enabled "
                          "was false when it trained)")

@@ -111,6 +111,11 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
     check(0 <= p.safety_horizon <= 20, "planning.safety_horizon", f"must lie in 0..20 (steps; 0: off), got {p.safety_horizon}")
     check(p.safety_horizon == 0 or p.enabled, "planning.safety_horizon",
           "checks the planner's actions: needs planning.enabled=true")
+    check(not isinstance(p.progress_bias, bool) and isinstance(p.progress_bias, (int, float))
+          and math.isfinite(p.progress_bias) and p.progress_bias >= 0, "planning.progress_bias",
+          f"must be a finite number >= 0 (0: off), got {p.progress_bias!r}")
+    check(p.progress_bias == 0 or p.enabled, "planning.progress_bias",
+          "weights the planner's scores: needs planning.enabled=true")
     check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
     check_threads(run.threads)
     check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
