@@ -98,8 +98,8 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
     record then adds the avoidable and unavoidable failures and the time over the ceiling (a file of another
     stream is refused before anything runs, naming the mismatch). ``planning``: act with these of the
     checkpoint's planner settings changed (``depth``, ``width``, ``safety_horizon``, ``progress_bias``; no
-    retraining; ``depth`` 0: greedy on Q, planning off); the record then shows them. A ``checkpoint`` ending in ``.onnx`` is a model
-    written by ``crowdrl-export``, evaluated through onnxruntime (:class:`~crowdrl.onnx_policy.OnnxPolicy`)
+    retraining; ``depth`` 0: greedy on Q, planning off); the record then shows them. A ``checkpoint`` ending in
+    ``.onnx`` is a model written by ``crowdrl-export``, evaluated through onnxruntime (:class:`~crowdrl.onnx_policy.OnnxPolicy`)
     on the same cases and through the same rollout, with the same record (its policy name ending in ``+onnx``);
     its planning is fixed at export (``planning`` refused), and it runs on the CPU."""
     from dataclasses import replace

@@ -153,6 +153,17 @@ class CrowdNavEnv(EnvBase):
         return min(SPAWN_BLOCK_MAX, max(SPAWN_BLOCK, 4 * self.num_envs))
 
     @property
+    def started(self) -> bool:
+        """Whether the env has been reset (it has episodes in flight)."""
+        return self.state is not None
+
+    def current(self) -> TensorDictBase:
+        """The observation of the episodes in flight, as a reset that resets none of them returns it."""
+        if self.state is None:
+            raise RuntimeError("CrowdNavEnv.current() called before reset()")
+        return self._reset_output()
+
+    @property
     def next_episode(self) -> int:
         """The episode id the next reset without ``"load_episode"`` takes (first sub-env)."""
         return self._next_episode

@@ -19,6 +19,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from crowdrl.envs.crowd_nav import CrowdNavEnv
+from crowdrl.envs.mix import ScenarioMixEnv
 from crowdrl.evaluation.metrics import EpisodeMetrics, discount_per_step, episode_metrics
 from crowdrl.evaluation.trajectory import Trajectory
 from crowdrl.sim.crowd import EVENT_NAMES
@@ -26,10 +27,11 @@ from crowdrl.sim.crowd import EVENT_NAMES
 Policy = Callable[[TensorDictBase], TensorDictBase]
 
 
-def crowd_env_of(env: EnvBase) -> CrowdNavEnv:
-    """The :class:`CrowdNavEnv` at the bottom of ``env`` (itself, or a ``TransformedEnv``'s base)."""
+def crowd_env_of(env: EnvBase) -> CrowdNavEnv | ScenarioMixEnv:
+    """The :class:`CrowdNavEnv` (or :class:`~crowdrl.envs.mix.ScenarioMixEnv`) at the bottom of ``env`` (itself, or
+    a ``TransformedEnv``'s base)."""
     base = env
-    while not isinstance(base, CrowdNavEnv):
+    while not isinstance(base, (CrowdNavEnv, ScenarioMixEnv)):
         nxt = getattr(base, "base_env", None)
         if nxt is None or nxt is base:
             raise TypeError(f"evaluate needs a CrowdNavEnv (optionally transformed), got {type(env).__name__}")

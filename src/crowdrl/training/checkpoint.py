@@ -35,7 +35,7 @@ class CheckpointError(RuntimeError):
 # Keys at the value that leaves the problem unchanged (no variable crowd, blind ORCA humans, no mixed shares):
 # left out of the fingerprint at that value, so a stored config without them keeps its fingerprint.
 _NEUTRAL = {"encoder": {"lidar": "off"},  # no scan read: hashed as before the key
-            "env": {"min_humans": None, "max_humans": None, "human_model": CrowdConfig.human_model,
+            "env": {"min_humans": None, "max_humans": None, "mix": {}, "human_model": CrowdConfig.human_model,
                     "robot_visible": CrowdConfig.robot_visible,
                     **{k: getattr(CrowdConfig, k) for k in (*SOCIAL_FORCE_KEYS, *SHARE_KEYS)}}}
 

@@ -60,6 +60,10 @@ EnvConfig = dataclasses.make_dataclass("EnvConfig", [
     ("max_humans", typing.Optional[int], field(default=None)),
     ("orca_backend", str, field(default="eager")),
     *_crowd_fields((*OBSTACLE_KEYS, *LIDAR_KEYS, *HUMAN_KEYS)),
+    # one agent for several scenarios: training batches mix them in these proportions (scenario -> share of
+    # train.num_envs' rows, each on its own stream; crowdrl.envs.mix); {}: env.scenario alone. Tests and the
+    # evaluation default stay on env.scenario, one of the mix's.
+    ("mix", typing.Dict[str, float], field(default_factory=dict)),
 ])
 EnvConfig.__module__ = __name__
 EnvConfig.__doc__ = ("The scenario and its crowd (``num_humans``, or a size drawn per episode from ``min_humans.."
@@ -235,11 +239,25 @@ class RunConfig:
 
 
 
+def trained_scenarios(run: RunConfig) -> tuple[str, ...]:
+    """The scenarios ``run`` trains on: ``env.mix``'s of a proportion above 0, or ``env.scenario`` alone."""
+    mixed = tuple(name for name, share in run.env.mix.items() if share > 0)
+    return mixed or (run.env.scenario,)
+
+
 def sees_obstacles(run: RunConfig) -> bool:
-    """Whether the run's networks read obstacles: trained in an obstacle scenario, they take the humans
-    and the observed obstacle edges as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`),
+    """Whether the run's networks read obstacles: trained in an obstacle scenario (one of its mix), they take the
+    humans and the observed obstacle edges as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`),
     wherever they are evaluated."""
-    return run.env.scenario in OBSTACLE_SCENARIOS
+    return any(name in OBSTACLE_SCENARIOS for name in trained_scenarios(run))
+
+
+def map_extent(run: RunConfig) -> tuple[int, tuple[int, int]]:
+    """``(K, (P, V))`` of the training batches: the most obstacle edges observed and the largest map (polygons,
+    vertices) among the trained scenarios (a mix pads the others to them; ``(0, (0, 0))`` in open space)."""
+    configs = [crowd_config(run, scenario=name) for name in trained_scenarios(run)]
+    return (max(c.num_obstacle_tokens for c in configs),
+            (max(c.obstacles_shape[0] for c in configs), max(c.obstacles_shape[1] for c in configs)))
 
 
 def counterfactual_on(run: RunConfig) -> bool:

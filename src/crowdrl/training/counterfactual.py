@@ -68,6 +68,8 @@ class CounterfactualExperience(UpdatePart):
         one_step_key: where the run's buffer keeps the one-step successor ``s_{t+1}`` (n-step returns
             with an intrinsic bonus: :data:`crowdrl.training.variants.ONE_STEP_KEY`); the
             counterfactual transitions hold their next observation there too, for the bonus to read.
+        obstacle_tokens: the edges the robot observes from a new pose (``None``: ``config``'s; a scenario mix's
+            largest, :func:`~crowdrl.training.config.map_extent`).
 
     Example::
 
@@ -79,7 +81,7 @@ class CounterfactualExperience(UpdatePart):
     def __init__(self, config: CrowdConfig, net: nn.Module, obs_keys: Sequence[str], *, mode: str = "second_update",
                  actions: str = "topk", k: int = 5, weight: float = 0.5, entities: bool = False, seed: int = 0,
                  reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None,
-                 one_step_key: str | None = None) -> None:
+                 one_step_key: str | None = None, obstacle_tokens: int | None = None) -> None:
         if mode not in MODES:
             raise ValueError(f"mode: got {mode!r}; allowed: {', '.join(MODES)}")
         if actions not in ACTIONS:
@@ -100,7 +102,9 @@ class CounterfactualExperience(UpdatePart):
         self.reward_bonus, self.one_step_key = reward_bonus, one_step_key
         self.observe = RobotCentric(entities=entities)
         self.table = action_table(config.robot_v_pref)
-        self.has_map = config.obstacles_shape[0] > 0
+        # the edges observed from a new pose: config's K, or a scenario mix's (the most of its scenarios; padded)
+        self.obstacle_tokens = config.num_obstacle_tokens if obstacle_tokens is None else int(obstacle_tokens)
+        self.has_map = self.obstacle_tokens > 0
         self.generator = torch.Generator().manual_seed(int(seed))
         self._scalars: dict[str, float] = {}
 
@@ -170,7 +174,7 @@ class CounterfactualExperience(UpdatePart):
             nxt.set("humans_mask", repeat(mask))
         if self.has_map:  # the edges the robot observes from its new position
             edges, edges_mask = nearest_edges(robot_next[:, 0:2], repeat(walls), repeat(walls_mask),
-                                              cfg.num_obstacle_tokens)
+                                              self.obstacle_tokens)
             nxt.set("obstacles", edges)
             nxt.set("obstacles_mask", edges_mask)
         nxt = self.observe(nxt)

@@ -22,9 +22,10 @@ from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
 from crowdrl.auxiliary import AuxiliaryLearner
 from crowdrl.envs import CrowdNavEnv, RobotCentric
+from crowdrl.envs.mix import ScenarioMixEnv, mix_rows
 from crowdrl.exploration import ExplorationStrategy, ReplayContext
 from crowdrl.training.acting import GreedyActing, make_acting
-from crowdrl.training.config import RunConfig, TrainConfig, crowd_config, sees_obstacles
+from crowdrl.training.config import RunConfig, TrainConfig, crowd_config, sees_obstacles, trained_scenarios
 from crowdrl.training.counterfactual import CounterfactualExperience
 from crowdrl.training.facts import RunFacts
 from crowdrl.training.learner import D3QNLearner
@@ -41,11 +42,21 @@ def make_env(run: RunConfig, *, split: str = "train", num_envs: int | None = Non
 
     Training uses the ``train`` stream of the run seed; validation the ``val`` stream of the run
     seed; tests the ``test`` stream of the evaluation seed (``seed``), possibly on another
-    ``scenario`` or crowd size than training.
+    ``scenario`` or crowd size than training. A run with ``env.mix`` trains and validates on a
+    :class:`~crowdrl.envs.mix.ScenarioMixEnv` of its scenarios (``scenario`` not given); tests, and any
+    ``scenario`` given, play one scenario alone (``env.scenario`` by default).
     """
-    cfg = crowd_config(run, scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
-    base = CrowdNavEnv(cfg.scenario, num_envs=num_envs or run.train.num_envs, num_humans=cfg.num_humans,
-                       config=cfg, seed=run.seed if seed is None else seed, split=split, device=run.device)
+    n, seed = num_envs or run.train.num_envs, run.seed if seed is None else seed
+    if run.env.mix and scenario is None and split != "test":  # one agent for several scenarios, each on its stream
+        names = trained_scenarios(run)
+        configs = {name: crowd_config(run, scenario=name, num_humans=num_humans, robot_kinematics=robot_kinematics)
+                   for name in names}
+        rows = mix_rows({name: run.env.mix[name] for name in names}, n)
+        base: EnvBase = ScenarioMixEnv(configs, rows, seed=seed, split=split, device=run.device)
+    else:
+        cfg = crowd_config(run, scenario=scenario, num_humans=num_humans, robot_kinematics=robot_kinematics)
+        base = CrowdNavEnv(cfg.scenario, num_envs=n, num_humans=cfg.num_humans, config=cfg, seed=seed, split=split,
+                           device=run.device)
     return TransformedEnv(base, Compose(RobotCentric(entities=sees_obstacles(run))))
 
 
@@ -105,7 +116,8 @@ def make_update_part(train: TrainConfig, net: torch.nn.Module, facts: RunFacts,
         return ReplayOnly()
     return CounterfactualExperience(facts.crowd, net, facts.obs_keys, mode=c.mode, actions=c.actions, k=c.k,
                                     weight=c.weight, entities=facts.entities, seed=3_000_017 * (facts.seed + 1),
-                                    reward_bonus=reward_bonus, one_step_key=one_step_key)
+                                    reward_bonus=reward_bonus, one_step_key=one_step_key,
+                                    obstacle_tokens=facts.obstacle_tokens)
 
 
 def make_learner(train: TrainConfig, net: torch.nn.Module, facts: RunFacts, strategy: ExplorationStrategy,

@@ -21,7 +21,7 @@ from tensordict.utils import NestedKey
 from crowdrl.envs import RobotCentric
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS
-from crowdrl.training.config import RunConfig, crowd_config, sees_obstacles
+from crowdrl.training.config import RunConfig, crowd_config, map_extent, sees_obstacles
 
 OBS_KEYS = ("robot_rc", "humans_rc")
 MASK_KEY = "humans_mask"  # [B, N] bool, True = present: read by the networks when crowds vary in size
@@ -64,6 +64,7 @@ class RunFacts:
         num_actions: the robot's discrete action count.
         seed: the run seed (each part derives its own seed from it).
         device: where the networks and the buffer live.
+        obstacle_tokens: the obstacle edges a training observation holds (a scenario mix's: the most of its scenarios).
     """
 
     crowd: CrowdConfig
@@ -73,13 +74,14 @@ class RunFacts:
     num_actions: int
     seed: int
     device: str
+    obstacle_tokens: int = 0
 
     @classmethod
     def of(cls, run: RunConfig) -> RunFacts:
         crowd = crowd_config(run)
         entities, lidar = sees_obstacles(run), run.encoder.lidar != "off"
         return cls(crowd=crowd, entities=entities, lidar=lidar, obs_keys=obs_keys(crowd, entities, lidar),
-                   num_actions=NUM_ACTIONS, seed=run.seed, device=run.device)
+                   num_actions=NUM_ACTIONS, seed=run.seed, device=run.device, obstacle_tokens=map_extent(run)[0])
 
     def replay_keys(self, *parts: StoresKeys) -> list[NestedKey]:
         """The keys of a collected batch the replay buffer keeps: the transitions of :attr:`obs_keys`

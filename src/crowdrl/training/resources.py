@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from crowdrl.envs.robot_centric import ENTITY_DIM
 from crowdrl.sim.crowd import HUMAN_OBS_DIM, ROBOT_OBS_DIM
-from crowdrl.training.config import (EVAL_BATCH, ConfigError, RunConfig, counterfactual_on, crowd_config, crowd_range,
+from crowdrl.training.config import (EVAL_BATCH, ConfigError, RunConfig, counterfactual_on, crowd_range, map_extent,
                                      sees_obstacles)
 
 # Bytes per planned state (robot + N humans: n = N + 1 nodes) when the planner scores it: n·(a + b·n),
@@ -48,7 +48,7 @@ def transition_bytes(run: RunConfig) -> int:
     ``encoder.lidar`` the scan and the next scan (float32)."""
     low, high = crowd_range(run.env)
     if sees_obstacles(run):
-        tokens = high + crowd_config(run).num_obstacle_tokens
+        tokens = high + map_extent(run)[0]
         obs = 4 * (ROBOT_OBS_DIM + ENTITY_DIM * tokens) + tokens
     else:
         obs = 4 * (ROBOT_OBS_DIM + HUMAN_OBS_DIM * high) + (high if low < high else 0)
@@ -58,7 +58,7 @@ def transition_bytes(run: RunConfig) -> int:
     if (run.planning.enabled and run.planning.predictor == "learned") or counterfactual_on(run):
         out += 4 * (ROBOT_OBS_DIM + 2 * HUMAN_OBS_DIM * high)
     if counterfactual_on(run) and sees_obstacles(run):  # the episode's map: P polygons of V vertices and their mask
-        P, V = crowd_config(run).obstacles_shape
+        P, V = map_extent(run)[1]
         out += P * V * (2 * 4 + 1)
     return out
 

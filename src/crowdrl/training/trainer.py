@@ -128,7 +128,7 @@ class Trainer:
             "config": self.config_dict,
             "wandb_id": self.wandb.id if self.wandb else None,
             # for an exact resume: the in-flight episodes, the finished ones not yet logged (plain tuples)
-            "env": self.env.base_env.snapshot() if self.env.base_env.state is not None else None,
+            "env": self.env.base_env.snapshot() if self.env.base_env.started else None,
             "pending_episodes": [tuple(e) for e in self._pending_episodes],
         }
         # the strategy's and the learners' own top-level keys

@@ -14,12 +14,13 @@ from omegaconf import DictConfig, OmegaConf
 from crowdrl.models import ENCODERS
 from crowdrl.models.predictor import PREDICTORS
 from crowdrl.models.scan import SCAN_KINDS
+from crowdrl.envs.mix import mix_rows
 from crowdrl.schema import SchemaError, check_bools
 from crowdrl.sim.config import MAX_HUMANS, ORCA_BACKENDS, SCENARIOS, CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS
 from crowdrl.sim.rng import MAX_SEED
 from crowdrl.training.config import (COUNTERFACTUAL_ACTIONS, COUNTERFACTUAL_MODES, LOGGERS, WANDB_MODES, ConfigError,
-                                     RunConfig, crowd_config, crowd_range)
+                                     RunConfig, crowd_config, crowd_range, trained_scenarios)
 from crowdrl.training.resources import check_resources
 
 
@@ -116,6 +117,7 @@ def validate(cfg: DictConfig | dict | RunConfig, *, resources: bool = True) -> R
           f"must be a finite number >= 0 (0: off), got {p.progress_bias!r}")
     check(p.progress_bias == 0 or p.enabled, "planning.progress_bias",
           "weights the planner's scores: needs planning.enabled=true")
+    check_mix(run)
     check(0 <= run.seed <= MAX_SEED, "seed", f"must lie in 0..2**63-1 ({MAX_SEED}), got {run.seed}")
     check_threads(run.threads)
     check(t.updates_per_frame == 0 or t.total_frames > max(t.batch_size, t.warmup_frames), "train.total_frames",
@@ -193,6 +195,34 @@ def check_demonstrations(run: RunConfig, crowd: CrowdConfig) -> None:
         check(not crowd.humans_react_to_robot, "train.demonstrations.cases",
               "the oracle solves a case only when its crowd is known in advance, i.e. the humans ignore the robot; "
               "set env.robot_visible=false or train.demonstrations.cases=0")
+
+
+def check_mix(run: RunConfig) -> None:
+    """``env.mix`` (one agent for several scenarios): known scenarios, proportions >= 0 not all 0, a row of
+    ``train.num_envs`` and of ``train.val_episodes`` for each, every scenario's crowd buildable, ``env.scenario``
+    among them (tests default to it), and no oracle demonstrations (they search one scenario's cases)."""
+    e, t = run.env, run.train
+    if not e.mix:
+        return
+    try:
+        mix_rows(e.mix, t.num_envs)
+    except ValueError as exc:
+        raise ConfigError(f"{exc} (train.num_envs = {t.num_envs})") from None
+    try:
+        mix_rows(e.mix, t.val_episodes)
+    except ValueError:
+        raise ConfigError(f"train.val_episodes ({t.val_episodes}) leaves a scenario of env.mix without a validation "
+                          "case; raise it") from None
+    names = trained_scenarios(run)
+    check(e.scenario in names, "env.scenario", f"({e.scenario}) must be one of env.mix's scenarios ({', '.join(names)}): "
+          "tests and evaluations default to it")
+    for name in names:
+        try:
+            crowd_config(run, scenario=name)
+        except ValueError as exc:
+            raise ConfigError(f"env.{exc} (scenario {name} of env.mix)") from None
+    check(run.train.demonstrations.cases == 0, "train.demonstrations.cases",
+          "oracle demonstrations search one scenario's cases; leave them off (0) with env.mix")
 
 
 def check_threads(threads: Any, key: str = "threads") -> None:
