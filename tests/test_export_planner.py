@@ -187,16 +187,19 @@ def test_planning_depth_0_exports_the_greedy_q_policy_loudly(planner_model, tmp_
     assert got["policy"] == "sgd3qn+egreedy+onnx" and got["success_rate"] == greedy["success_rate"]
 
 
-def test_export_refuses_a_planner_it_cannot_hold_in_one_line_writing_nothing(tmp_path):
-    """A planner trained among obstacles reads the observed edges, which the exported planner does not take:
-    refused (exit 2, pointing to planning_depth=0), not exported without them."""
-    folder = planning_folder(tmp_path / "run", {"env": {"scenario": "corridor", "num_humans": 4}})
+@pytest.mark.parametrize("scenario, planning", [("corridor", {}), ("room", {"depth": 2, "width": 3, "safety_horizon": 2})])
+def test_a_planner_trained_among_obstacles_exports_with_the_edges_and_acts_as_torch(tmp_path, scenario, planning):
+    """A planner trained among obstacles reads the observed edges: its model takes them (``world_obstacles``)
+    and acts as the torch planner on every step, among the walls and in open space (one masked edge fed)."""
+    folder = planning_folder(tmp_path / "run", {"env": {"scenario": scenario, "num_humans": 4}, "planning": planning})
     proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "export.py"), f"checkpoint={folder}",
-                           f"out={tmp_path / 'out' / 'p.onnx'}"], env=ENV, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-    assert "planning_depth: " in proc.stderr and "trained among obstacles" in proc.stderr
-    assert "export its greedy Q policy with planning_depth=0" in proc.stderr
-    assert not (tmp_path / "out").exists()
+                           f"out={tmp_path / 'p.onnx'}"], env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    model = read_exported(tmp_path / "p.onnx")
+    assert model.plans and model.layout == "world_obstacles" and model.inputs[3:] == ("obstacles", "obstacles_mask")
+    for where in (scenario, "circle"):
+        r = compare_on_test_cases(folder, model.path, scenario=where, episodes=6, batch=6)
+        assert r["steps"] > 6 and r["differ"] == 0 and r["rounding"] <= max(1, r["steps"] // 500), (where, r)
 
 
 @pytest.mark.parametrize("planning, words", [({"width": 0}, "planning_width: must lie in 1..81"),

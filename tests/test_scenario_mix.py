@@ -152,6 +152,15 @@ def test_a_killed_mixed_run_resumes_bit_identically_and_evaluates_on_each_scenar
     for scenario in ("circle", "room", "corridor"):  # corridor: a scenario it never saw, read through the same tokens
         record, _ = evaluate_spec(checkpoint=tmp_path / "ref", scenario=scenario, episodes=3, record_episode=None)
         assert record["scenario"] == scenario and record["episodes"] == 3
+    pytest.importorskip("onnxruntime")
+    from crowdrl.agents import compare_on_test_cases
+    from crowdrl.export import export_onnx
+
+    info = export_onnx(tmp_path / "ref", tmp_path / "mix.onnx")  # the planner whole, reading the edges
+    assert info.planner and info.metadata["crowdrl.observation"] == "world_obstacles"
+    for scenario in ("circle", "doorway"):
+        r = compare_on_test_cases(tmp_path / "ref", info.path, scenario=scenario, episodes=3, batch=3)
+        assert r["steps"] > 3 and r["differ"] == 0, (scenario, r)
 
 
 def test_env_mix_selects_every_scenario_and_a_mix_is_one_override_away():

@@ -65,12 +65,14 @@ from crowdrl.sim.kinematics import NUM_ACTIONS, action_table
 from crowdrl.training.checkpoint import (CheckpointError, checkpoint_path, config_fingerprint,
                                         load_trained_network, load_trained_predictor)
 from crowdrl.envs.robot_centric import ENTITY_DIM
-from crowdrl.training.config import RunConfig, sees_obstacles, to_dict
+from crowdrl.training.config import RunConfig, map_extent, sees_obstacles, to_dict
 from crowdrl.training.config import crowd_config
 
 INPUTS = ("robot_rc", "humans_rc", "humans_mask")
 ENTITY_INPUTS = ("robot_rc", "entities_rc", "entities_mask")  # a checkpoint trained among obstacles
 PLANNER_INPUTS = ("robot", "humans", "humans_mask")  # the planner: the env's world-frame observation
+# the planner of a network trained among obstacles: also the observed obstacle edges [B, K, 4] and their mask [B, K]
+PLANNER_OBSTACLE_INPUTS = (*PLANNER_INPUTS, "obstacles", "obstacles_mask")
 LIDAR_INPUT = "lidar"  # a network that reads the scan (encoder.lidar) takes it last
 OUTPUTS = ("q_values", "action", "command")
 PLANNER_OUTPUTS = ("q_values", "action", "command", "candidates", "scores")
@@ -79,7 +81,8 @@ PLANNER_OUTPUTS = ("q_values", "action", "command", "candidates", "scores")
 # (and, later, the *_lidar layouts with crowdrl.lidar_rays and crowdrl.lidar_range: new layouts, same format)
 FORMAT_VERSION = 2
 # crowdrl.observation: the inputs each layout takes (a network reading the scan: the same, then "lidar")
-_BASE_LAYOUTS = {"world": PLANNER_INPUTS, "robot_centric": INPUTS, "entities": ENTITY_INPUTS}
+_BASE_LAYOUTS = {"world": PLANNER_INPUTS, "world_obstacles": PLANNER_OBSTACLE_INPUTS, "robot_centric": INPUTS,
+                 "entities": ENTITY_INPUTS}
 LAYOUTS = {**_BASE_LAYOUTS, **{f"{k}_lidar": (*v, LIDAR_INPUT) for k, v in _BASE_LAYOUTS.items()}}
 FORMATS = ("onnx",)
 DEFAULT_OPSET = 17
@@ -106,20 +109,23 @@ class GreedyQPolicy(nn.Module):
 
 
 class PlannerPolicy(nn.Module):
-    """``(robot [B, 9], humans [B, N, 5], humans_mask [B, N]) -> (Q [B, 81], action [B], command [B, 2],
-    candidates [B, w], scores [B, w])``: :meth:`OnlinePlanner.plan <crowdrl.policies.OnlinePlanner.plan>` on
-    world-frame states (deterministic: the network in eval mode), and the action's row of the action table."""
+    """``(robot [B, 9], humans [B, N, 5], humans_mask [B, N][, obstacles [B, K, 4], obstacles_mask [B, K]][,
+    lidar [B, R]]) -> (Q [B, 81], action [B], command [B, 2], candidates [B, w], scores [B, w])``:
+    :meth:`OnlinePlanner.plan <crowdrl.policies.OnlinePlanner.plan>` on world-frame states (deterministic: the
+    network in eval mode), and the action's row of the action table. A planner of a network trained among
+    obstacles (``entities``) takes the observed edges, as the env gives them."""
 
     def __init__(self, planner: OnlinePlanner) -> None:
         super().__init__()
-        if planner.entities:
-            raise ValueError("the exported planner reads no obstacle edges: a network trained among obstacles "
-                             "(entity tokens) cannot be exported with its planner")
         self.planner = planner
 
-    def forward(self, robot: Tensor, humans: Tensor, humans_mask: Tensor, *lidar: Tensor
+    def forward(self, robot: Tensor, humans: Tensor, humans_mask: Tensor, *rest: Tensor
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        plan = self.planner.plan(robot, humans, humans_mask, lidar=lidar[0] if lidar else None)
+        obstacles = obstacles_mask = None
+        if self.planner.entities:
+            obstacles, obstacles_mask, *rest = rest
+        plan = self.planner.plan(robot, humans, humans_mask, obstacles, obstacles_mask,
+                                 lidar=rest[0] if rest else None)
         return plan.action_value, plan.action, self.planner.table[plan.action], plan.candidates, plan.scores
 
 
@@ -185,10 +191,6 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         run = act_with(run, acting, prefix="planning_")
     entities = sees_obstacles(run)
     plans = run.planning.enabled
-    if plans and entities:
-        raise ValueError(f"planning_depth: {ckpt} was trained among obstacles ({run.env.scenario}): its planner reads "
-                         "the observed obstacle edges, which the exported planner does not take; export its greedy Q "
-                         "policy with planning_depth=0 (it acts differently from the planner)")
     path = check_writable(path)
     crowd = crowd_config(run)
     scan = (crowd.lidar_rays, crowd.lidar_range) if run.encoder.lidar != "off" else None  # the network's scan input
@@ -200,21 +202,27 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         p = run.planning
         policy: nn.Module = PlannerPolicy(OnlinePlanner(net, predictor, crowd, gamma=run.train.gamma, depth=p.depth,
                                                         width=p.width, safety_horizon=p.safety_horizon,
-                                                        progress_bias=p.progress_bias,
+                                                        progress_bias=p.progress_bias, entities=entities,
                                                         lidar_key=LIDAR_INPUT if scan else None)).eval()
-        outputs, layout, width = PLANNER_OUTPUTS, "world", 5
+        outputs, layout, width = PLANNER_OUTPUTS, "world_obstacles" if entities else "world", 5
     else:
         policy = GreedyQPolicy(net, table).eval()
         width = ENTITY_DIM if entities else 5
         outputs, layout = OUTPUTS, "entities" if entities else "robot_centric"
     layout += "_lidar" if scan else ""
     inputs = LAYOUTS[layout]
-    rows = high + crowd.num_obstacle_tokens if entities else high  # the slots an unrolled LSTM-RL takes
-    example = _random_world(2, rows, seed=0) if plans else _random_observations(2, rows, seed=0, width=width)
+    edges = map_extent(run)[0] if entities else 0  # the observed edges it trained with (a mix's: the most)
+    rows = high + edges  # the slots an unrolled LSTM-RL takes
+    if plans:
+        example = _random_world(2, high, seed=0) + _random_edges(2, edges if entities else 0, seed=0)
+    else:
+        example = _random_observations(2, rows, seed=0, width=width)
     example += _random_scans(2, scan, seed=0)
     axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
     if not fixed_crowd:
-        axes[inputs[1]][1] = axes[inputs[2]][1] = "entities" if entities else "humans"
+        axes[inputs[1]][1] = axes[inputs[2]][1] = "entities" if entities and not plans else "humans"
+        if plans and entities:
+            axes["obstacles"][1] = axes["obstacles_mask"][1] = "edges"
     buf = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
         # the shape checks of the encoders hold for every input the axes allow; the exporter's
@@ -249,6 +257,10 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
         described = ("robot [B,9] float32 (px, py, vx, vy, radius, gx, gy, v_pref, heading), humans [B,N,5] float32 "
                      "(px, py, vx, vy, radius), humans_mask [B,N] bool (True: present); all in the world frame "
                      "(the env's robot, humans, humans_mask)")
+        if entities:
+            described += (f", obstacles [B,K,4] float32 (the observed obstacle edges ax, ay, bx, by in the world frame, "
+                          f"nearest first; trained with K={edges}), obstacles_mask [B,K] bool (True: present; the env's "
+                          f"obstacles, obstacles_mask; an open scenario: one masked row)")
         outputs_text = (f"q_values [B,81] float32 (Q of the state), action [B] int64 (the planner's), command [B,2] "
                         f"float32 (speed m/s, rotation rad), candidates [B,{p.width}] int64 (top-{p.width} by Q, best "
                         f"first), scores [B,{p.width}] float32 (their look-ahead scores)")
@@ -302,7 +314,7 @@ def export_onnx(checkpoint: Path | str, path: Path | str, *, opset: int = DEFAUL
     payload = model.SerializeToString()
     max_err, differing = None, 0
     if check and plans:
-        max_err, differing = _check_planner_against_torch(payload, policy, rows, fixed_crowd, scan)
+        max_err, differing = _check_planner_against_torch(payload, policy, high, fixed_crowd, scan, inputs, edges)
     elif check:
         max_err = _check_against_torch(payload, policy, rows, fixed_crowd, inputs, width, scan)
     try:
@@ -451,6 +463,19 @@ def _random_world(batch: int, humans: int, seed: int) -> tuple[Tensor, Tensor, T
     return robot, crowd, mask
 
 
+def _random_edges(batch: int, edges: int, seed: int) -> tuple[Tensor, ...]:
+    """``(obstacles [B, K, 4], obstacles_mask [B, K])``: wall segments of 1-3 m within a few metres of the origin
+    (where :func:`_random_world` puts the robot), some masked; ``()`` for ``edges`` 0."""
+    if edges == 0:
+        return ()
+    g = torch.Generator().manual_seed(seed + 13)
+    a = torch.randn(batch, edges, 2, generator=g) * 3
+    b = a + torch.randn(batch, edges, 2, generator=g) * 1.5
+    mask = torch.rand(batch, edges, generator=g) > 0.3
+    mask[:, 0] = True
+    return torch.cat((a, b), -1), mask
+
+
 def _random_scans(batch: int, scan: tuple[int, float] | None, seed: int) -> tuple[Tensor, ...]:
     """``(lidar [B, R],)``: readings uniform in ``[0, range]`` for ``scan = (R, range)``; ``()`` without a scan."""
     if scan is None:
@@ -460,7 +485,8 @@ def _random_scans(batch: int, scan: tuple[int, float] | None, seed: int) -> tupl
 
 
 def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int, fixed_crowd: bool,
-                                 scan: tuple[int, float] | None = None) -> tuple[float | None, int]:
+                                 scan: tuple[int, float] | None = None, inputs: tuple[str, ...] = PLANNER_INPUTS,
+                                 edges: int = 0) -> tuple[float | None, int]:
     """``(the largest Q or score difference, the actions that differ on near-ties)`` between onnxruntime and
     the torch planner on random world-frame states (``(None, 0)`` without onnxruntime); ``RuntimeError`` for a
     difference above 1e-4 or an action that differs where the scores do not tie within 1e-4."""
@@ -470,12 +496,12 @@ def _check_planner_against_torch(payload: bytes, policy: nn.Module, humans: int,
         return None, 0
     session = onnxruntime.InferenceSession(payload, providers=["CPUExecutionProvider"])
     worst, differing = 0.0, 0
-    for batch, n, seed in ((64, humans, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1), 2)):
-        obs = _random_world(batch, n, seed) + _random_scans(batch, scan, seed)
+    for batch, n, k, seed in ((64, humans, edges, 1), (3, humans if fixed_crowd else max(1, humans // 2 + 1),
+                                                          edges if fixed_crowd else max(1, edges // 2) * (edges > 0), 2)):
+        obs = _random_world(batch, n, seed) + _random_edges(batch, k, seed) + _random_scans(batch, scan, seed)
         with torch.no_grad():
             q, action, _, cand, scores = policy(*obs)
-        names = PLANNER_INPUTS + ((LIDAR_INPUT,) if scan else ())
-        got = session.run(["q_values", "action", "scores"], dict(zip(names, (t.numpy() for t in obs))))
+        got = session.run(["q_values", "action", "scores"], dict(zip(inputs, (t.numpy() for t in obs))))
         worst = max(worst, float((torch.from_numpy(got[0]) - q).abs().max()),
                     float((torch.from_numpy(got[2]) - scores).abs().max()))
         differ = torch.from_numpy(got[1]) != action

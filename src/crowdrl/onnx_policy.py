@@ -48,7 +48,7 @@ class OnnxPolicy(TensorDictModuleBase):
         if self.model.fixed_humans is not None and rows != self.model.fixed_humans:
             raise ValueError(f"{num_humans_key}: {path} takes exactly {self.model.fixed_humans} rows of humans "
                              f"(and obstacle edges; {self.model.run.encoder.name}), the env gives {rows}")
-        if self.model.plans and cfg.num_obstacle_tokens > 0:
+        if self.model.plans and cfg.num_obstacle_tokens > 0 and "obstacles" not in self.in_keys:
             raise ValueError(f"{scenario_key}: {path} holds an online planner that reads no obstacle edges; "
                              f"{cfg.scenario} has obstacles, which the checkpoint's planner would see: evaluate "
                              "the checkpoint instead")
@@ -61,21 +61,22 @@ class OnnxPolicy(TensorDictModuleBase):
                              f"{cfg.robot_kinematics}")
 
     def feeds(self, tensordict: TensorDictBase) -> dict[str, np.ndarray]:
-        """The model's inputs from ``tensordict`` (flattened to one batch axis)."""
+        """The model's inputs from ``tensordict`` (flattened to one batch axis): a missing humans' mask is all
+        present; missing obstacle edges (an open scenario, for a planner trained among obstacles) are one masked
+        edge."""
         names = self.in_keys
         first = tensordict.get(names[0])
         lead = first.shape[:-1]
-        rows = tensordict.get(names[1])
-        mask = tensordict.get(names[2], None)
-        if mask is None:
-            mask = torch.ones(rows.shape[:-1], dtype=torch.bool, device=rows.device)
-        feeds = {names[0]: first.reshape(-1, first.shape[-1]).to("cpu", torch.float32).numpy(),
-                 names[1]: rows.reshape(-1, *rows.shape[len(lead):]).to("cpu", torch.float32).numpy(),
-                 names[2]: mask.reshape(-1, mask.shape[-1]).to("cpu", torch.bool).numpy()}
-        for name in names[3:]:  # the lidar scan [*, R] of a network that reads it
-            value = tensordict.get(name)
-            feeds[name] = value.reshape(-1, value.shape[-1]).to("cpu", torch.float32).numpy()
-        return feeds
+        given: dict[str, torch.Tensor] = {}
+        for name in names:
+            value = tensordict.get(name, None)
+            if value is None and name == "obstacles":
+                value = torch.zeros(*lead, 1, 4)
+            if value is None and name.endswith("_mask"):  # a fixed crowd, or no edges: every row present / absent
+                rows = given[name[:-len("_mask")]]
+                value = torch.full(rows.shape[:-1], name != "obstacles_mask", dtype=torch.bool)
+            given[name] = value.to("cpu", torch.bool if name.endswith("_mask") else torch.float32)
+        return {name: value.reshape(-1, *value.shape[len(lead):]).numpy() for name, value in given.items()}
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         lead = tensordict.get(self.in_keys[0]).shape[:-1]
