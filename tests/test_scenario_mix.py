@@ -190,3 +190,20 @@ def test_a_mix_is_neutral_in_the_fingerprint_when_off():
     without = {**cfg, "env": {k: v for k, v in cfg["env"].items() if k != "mix"}}
     assert config_fingerprint(cfg) == config_fingerprint(without)
     assert config_fingerprint(to_dict(validate({"env": {"mix": {"circle": 1, "square": 1}}}))) != config_fingerprint(cfg)
+
+
+def test_reproduce_plans_a_mix_and_refuses_one_its_budget_cannot_hold(tmp_path):
+    """``reproduce.py train_scenario=mix``: every run trains on ``env=mix``; a budget whose envs cannot give each
+    scenario a row is refused before anything is trained or written, naming env.mix."""
+    from crowdrl.reproduction.plan import PlanError, check_runs, make_plan, run_overrides
+
+    cfg = {"budget": "demo", "variants": ["egreedy"], "seeds": [0], "train_scenario": "mix",
+           "scenarios": list(SCENES), "out": str(tmp_path / "mix")}
+    plan = make_plan(cfg)
+    assert "env=mix" in run_overrides(plan, plan.methods[0])
+    check_runs(plan)
+    with pytest.raises(PlanError, match=r"env\.mix: scenario '\w+' gets no row of the 4 envs"):
+        check_runs(make_plan({**cfg, "budget": "smoke"}))
+    with pytest.raises(PlanError, match="train_scenario: unknown 'atrium'.*mix"):
+        make_plan({**cfg, "train_scenario": "atrium"})
+    assert not (tmp_path / "mix").exists()

@@ -51,7 +51,7 @@ class ReproduceConfig:
     encoders: List[str] = field(default_factory=lambda: ["sgd3qn"])  # each variant is trained with each encoder
     variants: List[str] = field(default_factory=lambda: ["egreedy", "noisy", "dropout", "icm", "re3"])
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
-    train_scenario: str = "circle"
+    train_scenario: str = "circle"  # or mix: every scenario in one batch (conf/env/mix.yaml)
     scenarios: List[str] = field(default_factory=lambda: ["circle", "square"])  # test scenarios
     episodes: int = 1000  # test cases per scenario (test seed 0), also for ORCA
     jobs: int = 2  # runs at a time on this machine (launcher=local)

@@ -11,7 +11,7 @@ from typing import Any
 
 from crowdrl.reproduction.config import ReproduceConfig
 from crowdrl.resources import config_dir
-from crowdrl.training.config import COUNTERFACTUAL_OFF, LEVERS_OFF
+from crowdrl.training.config import COUNTERFACTUAL_OFF, LEVERS_OFF, MIX
 
 CONF_DIR = str(config_dir())
 BUDGETS = tuple(sorted(p.stem for p in (config_dir() / "preset").glob("*.yaml")))  # conf/preset/<budget>.yaml
@@ -155,8 +155,9 @@ def make_plan(cfg: dict[str, Any]) -> Plan:
         raise PlanError(f"budget: unknown {s.budget!r}; allowed: {', '.join(BUDGETS)}")
     if s.launcher not in LAUNCHERS:
         raise PlanError(f"launcher: unknown {s.launcher!r}; allowed: {', '.join(LAUNCHERS)}")
-    if s.train_scenario not in SCENARIOS:
-        raise PlanError(f"train_scenario: unknown {s.train_scenario!r}; allowed: {', '.join(SCENARIOS)}")
+    if s.train_scenario not in (*SCENARIOS, MIX):
+        raise PlanError(f"train_scenario: unknown {s.train_scenario!r}; allowed: {', '.join(SCENARIOS)}, {MIX} (every "
+                        "scenario in one batch, conf/env/mix.yaml)")
     seeds = list(s.seeds)
     if not seeds:
         raise PlanError("seeds: give a non-empty list, e.g. seeds=[0,1,2]")

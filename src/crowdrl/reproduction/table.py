@@ -12,6 +12,7 @@ from typing import Any
 from crowdrl.evaluation.report import paper_value, read_eval_record, read_run_eval_record, read_summary
 from crowdrl.reproduction.plan import DEFAULT_ENCODER, Plan, eval_path
 from crowdrl.tables import interval_cell, markdown_table
+from crowdrl.training.config import MIX
 
 METRICS = ("success_rate", "collision_rate", "navigation_time", "average_return")
 
@@ -135,12 +136,14 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_
     planning = " with online planning" if plan.planning else ""
     if plan.lidar[0] != "off":
         planning += f", reading the lidar scan ({plan.lidar[0]}, {plan.lidar[1]} rays)"
-    transfer = [sc for sc in plan.scenarios if sc != plan.train_scenario]
+    mixed = plan.train_scenario == MIX  # trained on every scenario at once: none is zero-shot
+    transfer = [] if mixed else [sc for sc in plan.scenarios if sc != plan.train_scenario]
     paper = " (paper, one seed)" if set(plan.scenarios) & set(OPEN_SCENARIOS) else ""  # the paper has open space only
     zero_shot = f"; {' and '.join(transfer)} {'is' if len(transfer) == 1 else 'are'} zero-shot" if transfer else ""
     lines = [f"# crowdrl reproduction: {what}{planning}, budget `{plan.budget}`",
              "",
-             f"Trained on {plan.train_scenario} with seeds {seeds}; each best validation checkpoint tested on "
+             f"Trained on {'every scenario in one batch (env=mix)' if mixed else plan.train_scenario} with seeds "
+             f"{seeds}; each best validation checkpoint tested on "
              f"{plan.episodes} cases per scenario (test seed 0{zero_shot}). Cells: mean over seeds "
              f"[95 % stratified-bootstrap CI, rliable, {plan.reps} resamples]{paper}. "
              "P(improve): probability that the variant's success rate beats ε-greedy's (same encoder) on a random "

@@ -239,6 +239,9 @@ class RunConfig:
 
 
 
+MIX = "mix"  # the env group option (conf/env/mix.yaml) that trains on every scenario in one batch (env.mix)
+
+
 def trained_scenarios(run: RunConfig) -> tuple[str, ...]:
     """The scenarios ``run`` trains on: ``env.mix``'s of a proportion above 0, or ``env.scenario`` alone."""
     mixed = tuple(name for name, share in run.env.mix.items() if share > 0)
