@@ -4,6 +4,7 @@ collector with the ε-greedy SG-D3QN policy, and where a collected frame goes.
     git worktree add /tmp/crowdrl-6dfef2c 6dfef2c
     python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c        # table
     python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c --json
+    python experiments/bench_collect.py --baseline /tmp/crowdrl-6dfef2c --configs eager:eager --planning --rounds 3
     # two recent commits, both with the compiled ORCA and acting network:
     python experiments/bench_collect.py --baseline /tmp/crowdrl-parent --baseline-config compiled:compiled \
         --configs compiled:compiled --profile-backend none
@@ -54,9 +55,13 @@ def bench_train_rows(checkout: Path, args: list[str]) -> list[dict]:
     return out["rows"] if "rows" in out else out["results"]
 
 
-def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None, acting: str | None = None) -> float:
-    """``collect_frames_per_s`` of ``checkout``'s bench_train.py."""
+def frames_per_s(checkout: Path, num_envs: int, batches: int, backend: str | None, acting: str | None = None,
+                 planning: bool = False) -> float:
+    """``collect_frames_per_s`` of ``checkout``'s bench_train.py (acting through the online planner with
+    ``planning``)."""
     args = ["--num-envs", str(num_envs), "--updates", "5", "--batches", str(batches), "--warmup-frames", "2000"]
+    if planning:
+        args.append("--planning")
     if backend is not None:
         args += ["--orca-backend", backend]
     if acting is not None:
@@ -122,6 +127,9 @@ def main(argv: list[str] | None = None) -> dict:
                    choices=[f"{o}:{a}" for o in ("eager", "compiled") for a in ("eager", "compiled")],
                    help="the baseline's ORCA:acting, for a baseline whose bench_train.py has --orca-backend and "
                         "--acting (default: its own defaults; 6dfef2c has neither flag)")
+    p.add_argument("--planning", action="store_true",
+                   help="also time each of this checkout's configurations acting through SG-D3QN's online planner "
+                        "(the baseline as it is: 6dfef2c has no planner)")
     p.add_argument("--profile-backend", default="compiled", choices=["eager", "compiled", "none"])
     p.add_argument("--profile-acting", default="compiled", choices=["eager", "compiled"])
     add_json_argument(p)
@@ -133,12 +141,13 @@ def main(argv: list[str] | None = None) -> dict:
     if args.baseline_config is not None and args.baseline is None:
         p.error("--baseline-config needs --baseline")
     base_orca, base_acting = args.baseline_config.split(":") if args.baseline_config else (None, None)
-    configs = ([("baseline", args.baseline, base_orca, base_acting)] if args.baseline else []) + \
-              [(f"ORCA {o}, acting {a}", ROOT, o, a) for o, a in (c.split(":") for c in args.configs)]
+    configs = ([("baseline", args.baseline, base_orca, base_acting, False)] if args.baseline else []) + \
+              [(f"ORCA {o}, acting {a}{', planning' if plan else ''}", ROOT, o, a, plan)
+               for o, a in (c.split(":") for c in args.configs) for plan in ((False, True) if args.planning else (False,))]
     rates: dict[str, list[float]] = {name: [] for name, *_ in configs}
     for _ in range(args.rounds):
-        for name, checkout, backend, acting in configs:
-            rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend, acting))
+        for name, checkout, backend, acting, plan in configs:
+            rates[name].append(frames_per_s(checkout, args.num_envs, args.batches, backend, acting, plan))
             log(f"{name}: {rates[name][-1]:,.0f} frames/s")
     base = statistics.median(rates["baseline"]) if args.baseline else None
     rows = [{"config": name, "frames_per_s": statistics.median(v), "runs": v,
