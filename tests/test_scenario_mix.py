@@ -149,6 +149,15 @@ def test_a_killed_mixed_run_resumes_bit_identically_and_evaluates_on_each_scenar
     assert all(torch.equal(ref["loss"][k], got["loss"][k]) for k in ref["loss"])
     assert read_eval_record(tmp_path / "ref" / "eval.json")["scenario"] == "doorway"
     assert read_eval_record(tmp_path / "ref" / "eval.json") == read_eval_record(tmp_path / "run" / "eval.json")
+    import json
+
+    vals = [json.loads(line) for line in (tmp_path / "ref" / "scalars.jsonl").read_text().splitlines()
+            if json.loads(line)["kind"] == "val"]
+    for row in vals:  # each scenario's validation cases (one each of the 3), and the mix's rate their mean
+        rates = [row[f"val/{name}/success_rate"] for name in ("circle", "doorway", "room")]
+        assert row["val/success_rate"] == pytest.approx(sum(rates) / 3)
+    header = (tmp_path / "ref" / "scalars.csv").read_text().splitlines()[0]
+    assert "val/doorway/success_rate" in header
     for scenario in ("circle", "room", "corridor"):  # corridor: a scenario it never saw, read through the same tokens
         record, _ = evaluate_spec(checkpoint=tmp_path / "ref", scenario=scenario, episodes=3, record_episode=None)
         assert record["scenario"] == scenario and record["episodes"] == 3

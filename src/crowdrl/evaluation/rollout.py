@@ -22,6 +22,7 @@ from crowdrl.envs.crowd_nav import CrowdNavEnv
 from crowdrl.envs.mix import ScenarioMixEnv
 from crowdrl.evaluation.metrics import EpisodeMetrics, discount_per_step, episode_metrics
 from crowdrl.evaluation.trajectory import Trajectory
+from crowdrl.sim.config import SCENARIOS
 from crowdrl.sim.crowd import EVENT_NAMES
 
 Policy = Callable[[TensorDictBase], TensorDictBase]
@@ -44,7 +45,8 @@ def episode_records(rollout: TensorDictBase, max_steps: int) -> dict[str, Tensor
 
     Each row's episode ends at its first ``done``; later steps of that row (the env reset it and
     went on) are ignored. Returns ``events``, ``lengths``, ``rewards [B, max_steps]``
-    (zero-padded), ``discomfort_steps`` and ``discomfort_separation_sum``.
+    (zero-padded), ``discomfort_steps`` and ``discomfort_separation_sum``; with ``scenario`` the row's scenario
+    index (a :class:`~crowdrl.envs.mix.ScenarioMixEnv`'s rollout).
     """
     nxt = rollout.get("next")
     done = nxt.get("done").reshape(rollout.shape)
@@ -58,13 +60,16 @@ def episode_records(rollout: TensorDictBase, max_steps: int) -> dict[str, Tensor
     min_sep = nxt.get("min_separation").reshape(B, T).double()
     padded = torch.zeros(B, max_steps, dtype=torch.float64, device=done.device)
     padded[:, :T] = rewards[:, :max_steps]
-    return {
+    out = {
         "events": nxt.get("event").reshape(B, T).gather(1, first.unsqueeze(-1)).squeeze(-1),
         "lengths": first + 1,
         "rewards": padded,
         "discomfort_steps": in_disc.sum(-1),
         "discomfort_separation_sum": torch.where(in_disc, min_sep, 0.0).sum(-1),
     }
+    if "scenario" in rollout.keys():
+        out["scenario"] = rollout.get("scenario").reshape(B, T)[:, 0]
+    return out
 
 
 def kept_bytes(num_episodes: int, max_steps: int) -> int:
@@ -83,6 +88,7 @@ def evaluate(
     first_episode: int = 0,
     record_episode: int | None = None,
     progress: Callable[[int], None] | None = None,
+    per_scenario: dict[str, EpisodeMetrics] | None = None,
 ) -> tuple[EpisodeMetrics, Trajectory | None]:
     """Run episodes ``first_episode .. first_episode + num_episodes - 1`` of ``env``'s stream.
 
@@ -91,7 +97,9 @@ def evaluate(
     TorchRL policy (a ``TensorDictModule`` or a callable on tensordicts) for that env. Episodes
     run ``env.num_envs`` at a time through ``env.rollout`` under the deterministic exploration
     type (greedy ε, dropout off); turn noisy layers off around the call. When
-    ``record_episode`` is given, that episode's :class:`Trajectory` is returned too.
+    ``record_episode`` is given, that episode's :class:`Trajectory` is returned too. On a
+    :class:`~crowdrl.envs.mix.ScenarioMixEnv` (each row its scenario's case), ``per_scenario`` (a dict, when
+    given) is filled with each scenario's own metrics, keyed by name.
 
     Examples:
         The ORCA baseline (holonomic robot) on the first four test episodes, two at a time:
@@ -142,13 +150,17 @@ def evaluate(
                                              crowd.state.obstacle_polygons(row) or None)
         if progress is not None:
             progress(n)
-    metrics = episode_metrics(
-        *(torch.cat(records[k]) for k in ("events", "lengths", "rewards", "discomfort_steps",
-                                          "discomfort_separation_sum")),
-        time_step=cfg.time_step,
-        discount=discount_per_step(cfg.time_step, cfg.robot_v_pref),
-    )
-    return metrics, trajectory
+    keys = ("events", "lengths", "rewards", "discomfort_steps", "discomfort_separation_sum")
+    joined = {k: torch.cat(v) for k, v in records.items()}
+
+    def metrics_of(rows: Tensor | slice) -> EpisodeMetrics:
+        return episode_metrics(*(joined[k][rows] for k in keys), time_step=cfg.time_step,
+                               discount=discount_per_step(cfg.time_step, cfg.robot_v_pref))
+
+    if per_scenario is not None and "scenario" in joined:
+        for index in joined["scenario"].unique().tolist():
+            per_scenario[SCENARIOS[index]] = metrics_of(joined["scenario"] == index)
+    return metrics_of(slice(None)), trajectory
 
 
 def recorded_trajectory(cfg, start: TensorDictBase, steps: TensorDictBase, length: int, outcome: str,

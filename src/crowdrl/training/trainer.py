@@ -296,11 +296,14 @@ class Trainer:
     def _validate(self) -> EpisodeMetrics:
         c, t = self.counters, self.run.train
         c.last_val = c.frames
+        per_scenario: dict[str, EpisodeMetrics] = {}  # a scenario mix's: each scenario's own (logged, not selected on)
         with self.strategy.evaluating():  # the strategy's greedy setting (e.g. its mean weights)
-            metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes)
+            metrics, _ = evaluate(self.val_env, self.policy, num_episodes=t.val_episodes, per_scenario=per_scenario)
         score = metrics.success_rate + 1e-3 * metrics.average_return  # ties broken by return
         row = {"kind": "val", "frames": c.frames, "updates": c.updates, "episodes": c.episodes,
                **{f"val/{k}": v for k, v in metrics.as_dict().items()},
+               **{f"val/{name}/{k}": v for name, m in per_scenario.items()
+                  for k, v in m.as_dict().items() if k in ("success_rate", "collision_rate", "timeout_rate")},
                # how far below the running best score this validation fell (0 at a new best): a collapse shows here
                "val/drop_from_best": max(0.0, c.best_val - score) if math.isfinite(c.best_val) else 0.0}
         if score > c.best_val:
