@@ -54,6 +54,12 @@ def scratch(tmp_path, monkeypatch):
     ("train", ["env.lidar_rays=100000000"], ["train.py: invalid configuration: env.lidar_rays must be an integer in "
                                              "0..1024 (0: no scan), got 100000000"]),
     ("evaluate", ["env=mars"], ["Could not find 'env/mars'", "available options in 'env': circle"]),
+    # issue 49: a scenario mix with an unknown scenario, a negative or all-zero proportion
+    ("train", ["+env.mix={circle: 1, mars: 1}"], ["train.py: ", "env.mix: unknown scenario 'mars'"]),
+    ("train", ["env=mix", "env.mix.doorway=-1"], ["env.mix.doorway: a proportion must be a finite number >= 0"]),
+    ("train", ["+env.mix={circle: 0, room: 0}"], ["env.mix: every proportion is 0"]),
+    ("train", ["env=mix", "env.scenario=doorway", "env.mix.doorway=0"], ["env.scenario: (doorway) must be one of "
+                                                                        "env.mix's scenarios"]),
     ("demo", ["train.num_envs=abc"], ["demo.py: train.num_envs:", "could not be converted to Integer"]),
 ])
 def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch, capsys, scratch, module, args, words):

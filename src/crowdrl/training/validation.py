@@ -207,7 +207,7 @@ def check_mix(run: RunConfig) -> None:
     try:
         mix_rows(e.mix, t.num_envs)
     except ValueError as exc:
-        raise ConfigError(f"{exc} (train.num_envs = {t.num_envs})") from None
+        raise ConfigError(str(exc)) from None
     try:
         mix_rows(e.mix, t.val_episodes)
     except ValueError:
