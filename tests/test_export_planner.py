@@ -200,6 +200,10 @@ def test_a_planner_trained_among_obstacles_exports_with_the_edges_and_acts_as_to
     for where in (scenario, "circle"):
         r = compare_on_test_cases(folder, model.path, scenario=where, episodes=6, batch=6)
         assert r["steps"] > 6 and r["differ"] == 0 and r["rounding"] <= max(1, r["steps"] // 500), (where, r)
+    example = subprocess.run([sys.executable, str(EXAMPLE), str(model.path), "--json"], env=ENV, capture_output=True,
+                             text=True, timeout=120)  # the numpy-only example feeds it a wall with a gap
+    assert example.returncode == 0, example.stderr[-2000:]
+    assert json.loads(example.stdout)["policy"] == "planner"
 
 
 @pytest.mark.parametrize("planning, words", [({"width": 0}, "planning_width: must lie in 1..81"),

@@ -101,13 +101,24 @@ def observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None)
     return {"robot_rc": robot_rc[None].astype(np.float32), "humans_rc": padded, "humans_mask": mask}
 
 
-def world_observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None) -> dict[str, np.ndarray]:
+def world_observation(robot: np.ndarray, humans: np.ndarray, slots: int | None = None,
+                      walls: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The inputs of an exported planner for one robot: ``robot [9]`` and ``humans [n, 5]`` in the world frame
     as they are (``robot``, ``humans``), padded with absent rows (``humans_mask`` False) to ``slots`` rows when
-    the model fixes N; no human in view: one absent row. Non-finite states are refused (:func:`check_states`)."""
+    the model fixes N; no human in view: one absent row. Non-finite states are refused (:func:`check_states`).
+    ``walls [k, 4]`` (ax, ay, bx, by per edge, world frame; a planner trained among obstacles takes them, nearest
+    first): ``obstacles`` and ``obstacles_mask``; no edge in view: one absent row."""
     robot, humans = _checked(robot, humans)
     padded, mask = _padded(humans, slots)
-    return {"robot": robot[None].astype(np.float32), "humans": padded, "humans_mask": mask}
+    feeds = {"robot": robot[None].astype(np.float32), "humans": padded, "humans_mask": mask}
+    if walls is not None:
+        walls = np.asarray(walls, dtype=np.float64).reshape(-1, 4)
+        if not np.isfinite(walls).all():
+            raise ValueError("walls: every edge coordinate must be finite")
+        present = len(walls) > 0
+        feeds["obstacles"] = (walls if present else np.zeros((1, 4)))[None].astype(np.float32)
+        feeds["obstacles_mask"] = np.full((1, max(len(walls), 1)), present)
+    return feeds
 
 
 FORMAT_VERSION = 2  # the newest crowdrl.format_version this example reads (none: 1, a greedy Q model)
@@ -162,9 +173,10 @@ def main(argv: list[str] | None = None) -> dict:
     planner = "humans" in shapes  # the exported online planner reads the world-frame states
     rows = "humans" if planner else "humans_rc"
     if rows not in shapes:
-        p.error(f"model: {args.model} takes {sorted(shapes)} (a policy trained among obstacles reads entity tokens); "
-                "this example builds the open-space inputs (robot, humans, humans_mask of a planner; robot_rc, "
-                "humans_rc, humans_mask of a greedy Q model) only (docs/export.md)")
+        p.error(f"model: {args.model} takes {sorted(shapes)} (a greedy Q policy trained among obstacles reads entity "
+                "tokens); this example builds the inputs of a planner (robot, humans, humans_mask, and obstacles, "
+                "obstacles_mask when it reads walls) and of an open-space greedy Q model (robot_rc, humans_rc, "
+                "humans_mask) only (docs/export.md)")
     n_axis = shapes[rows][1]
     slots = n_axis if isinstance(n_axis, int) else None  # an int: the model fixes N (pad); a name: free
 
@@ -173,7 +185,9 @@ def main(argv: list[str] | None = None) -> dict:
     humans = np.array([[0.3, -2.5, 0.0, -0.8, 0.3],    # coming straight at it
                        [-1.5, -1.0, 0.6, 0.0, 0.3],    # crossing from the left
                        [2.0, 1.0, 0.0, 0.0, 0.3]])     # standing
-    feeds = world_observation(robot, humans, slots) if planner else observation(robot, humans, slots)
+    # a wall across the way at y = -1 with a 2 m gap at x = 0 (edges ax, ay, bx, by), for a planner that reads walls
+    walls = np.array([[-5.0, -1.0, -1.0, -1.0], [1.0, -1.0, 5.0, -1.0]]) if "obstacles" in shapes else None
+    feeds = world_observation(robot, humans, slots, walls) if planner else observation(robot, humans, slots)
     q, action, command = session.run(["q_values", "action", "command"], feeds)
     a = int(action[0])
     speed, rotation = (float(x) for x in command[0])
