@@ -241,7 +241,7 @@ def build_groups(sources: list[tuple[str, str]]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="compare_runs.py", description=__doc__.split("\n\n")[0])
     p.set_defaults(sources=[])
     p.add_argument("--group", action=_InOrder, dest="group", default=argparse.SUPPRESS,
                    help="LABEL=RUN[,RUN...]; the first group given is the baseline")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import io
 import json
 import subprocess
 import sys
@@ -12,6 +15,22 @@ import pytest
 from crowdrl.evaluation.report import read_eval_record
 
 ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "experiments" / "compare_runs.py"
+
+
+def _in_process(argv: list[str]) -> subprocess.CompletedProcess:
+    """``compare_runs.py`` with ``argv``, run in this process (its ``main``; no interpreter start-up per call):
+    the exit status, standard output and standard error of the command."""
+    spec = importlib.util.spec_from_file_location("compare_runs_cli", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = module.main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 
 def _run_folder(path: Path, successes: list[float], timeouts: list[float]) -> Path:
@@ -27,10 +46,9 @@ def _run_folder(path: Path, successes: list[float], timeouts: list[float]) -> Pa
 def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     a = [_run_folder(tmp_path / f"a{s}", [0.5, 0.9, 0.8, 0.8], [0.0, 0.0, 0.1, 0.0]) for s in range(2)]
     b = [_run_folder(tmp_path / f"b{s}", [0.6, 0.95, 0.3, 0.2], [0.0, 0.0, 0.6, 0.7]) for s in range(2)]
-    cmd = [sys.executable, str(ROOT / "experiments" / "compare_runs.py"), "--split", "val", "--last", "2",
-           "--reps", "200", "--out", str(tmp_path / "out"), "--json",
+    cmd = ["--split", "val", "--last", "2", "--reps", "200", "--out", str(tmp_path / "out"), "--json",
            "--group", "A=" + ",".join(map(str, a)), "--group", "B=" + ",".join(map(str, b))]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, str(SCRIPT), *cmd], capture_output=True, text=True, timeout=120)  # the CLI
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = {r["group"]: r for r in json.loads(proc.stdout)["rows"]}
     assert rows["A"]["success_rate"] == pytest.approx(0.8) and rows["A"]["timeout_rate"] == pytest.approx(0.05)
@@ -40,7 +58,7 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     # stability: the last validations below the best, and the largest fall below the running best late on
     assert rows["A"]["gap_to_best"] == pytest.approx(0.1) and rows["B"]["gap_to_best"] == pytest.approx(0.7)
     assert rows["A"]["late_drop"] == pytest.approx(0.1) and rows["B"]["late_drop"] == pytest.approx(0.75)
-    none_after = subprocess.run([*cmd, "--after", "40"], capture_output=True, text=True, timeout=120)
+    none_after = _in_process([*cmd, "--after", "40"])
     assert none_after.returncode == 0, none_after.stderr[-2000:]
     assert all(r["late_drop"] == 0.0 for r in json.loads(none_after.stdout)["rows"])  # no validation after 40 frames
     assert "validation" in (tmp_path / "out" / "table.md").read_text()
@@ -49,24 +67,22 @@ def test_val_split_averages_the_last_validations_and_keeps_the_best(tmp_path):
     assert rows["A"]["frames_to_reach"] == 10 and rows["A"]["reached"] == 2  # --reach 0.5 by default
     b[0].joinpath("scalars.jsonl").write_text(b[0].joinpath("scalars.jsonl").read_text().replace('"val/success_rate": 0.95',
                                                                                                  '"val/success_rate": 0.6'))
-    high = subprocess.run([*cmd, "--reach", "0.9"], capture_output=True, text=True, timeout=120)
+    high = _in_process([*cmd, "--reach", "0.9"])
     assert high.returncode == 0, high.stderr[-2000:]
     rows = {r["group"]: r for r in json.loads(high.stdout)["rows"]}
     assert rows["A"]["frames_to_reach_per_seed"] == [20, 20] and rows["B"]["reached"] == 1
     text = (tmp_path / "out" / "table.md").read_text()
     assert "| 1/2 reached (20) |" in text and "frames to first val. ≥ 0.9" in text
-    never = subprocess.run([*cmd, "--reach", "0.96"], capture_output=True, text=True, timeout=120)
+    never = _in_process([*cmd, "--reach", "0.96"])
     assert never.returncode == 0 and "0/2 reached |" in (tmp_path / "out" / "table.md").read_text()
-    bad = subprocess.run([*cmd, "--reach", "0"], capture_output=True, text=True, timeout=120)
+    bad = _in_process([*cmd, "--reach", "0"])
     assert bad.returncode == 2 and "--reach must lie in (0, 1], got 0.0" in bad.stderr
-    short = subprocess.run([*cmd[:-4], "--last", "9", "--group", "A=" + str(a[0]), "--group", "B=" + str(b[0])],
-                           capture_output=True, text=True, timeout=120)
+    short = _in_process([*cmd[:-4], "--last", "9", "--group", "A=" + str(a[0]), "--group", "B=" + str(b[0])])
     assert short.returncode != 0 and "fewer than --last 9" in short.stderr
 
 
 def _compare(*args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(ROOT / "experiments" / "compare_runs.py"), "--reps", "200", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    return _in_process(["--reps", "200", *args])
 
 
 def test_val_split_names_the_episodes_the_validations_held(tmp_path):

@@ -146,7 +146,9 @@ def test_merged_loss_is_the_weighted_sum_of_the_two_means():
     torch.testing.assert_close(loss(merged)["loss"], expected)
 
 
-@pytest.mark.parametrize("compiled", [False, True])
+# compiled: make test-slow (~30 s of compilation); the compiled grouped path is checked in make test by the merged
+# row-by-row test below
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_grouped_batch_gives_the_flat_batch_loss_and_gradients(compiled):
     """A ``[B, k]`` counterfactual batch encodes each state once; its loss and gradients equal those
     of the same ``B·k`` transitions laid out flat (each state repeated), eager and compiled."""
@@ -189,8 +191,9 @@ def _reference_loss(net, target_net, keys, batch, gamma):
     return per.mean() if weight is None else (weight.reshape(-1) * per).sum()
 
 
-@pytest.mark.parametrize("compiled", [False, True])
-@pytest.mark.parametrize("mode", ["second_update", "merged"])
+@pytest.mark.parametrize("mode, compiled", [("second_update", False), ("merged", False), ("merged", True),
+                                            # the same compiled graph as merged's without weights: make test-slow
+                                            pytest.param("second_update", True, marks=pytest.mark.slow)])
 def test_counterfactual_update_equals_the_row_by_row_loss_and_gradients(mode, compiled):
     """The update on a counterfactual batch (``second_update``'s ``[B, 5]``, ``merged``'s ``[B, 6]``:
     states encoded once, bootstrap states evaluated in chunks) gives the loss and gradients of the same
