@@ -128,32 +128,39 @@ def _scenes_last_velocities(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, gx: Te
                             has_goal: Tensor, pair: Tensor, time_step: float, substeps: int, tau: float, v0: float,
                             sigma: float) -> tuple[Tensor, Tensor]:
     """:func:`social_force_velocities`' sub-steps on components laid out scenes last (``[M, B]``, pairs
-    ``[a, b, B]``), the layout in which inductor vectorises every fused loop over the scenes. The same
-    terms in the same order as :func:`_repulsion` and the loop above, per component."""
+    ``[a, b, B]``), the layout in which inductor vectorises every fused loop over the scenes. The same terms as
+    :func:`_repulsion` and the loop above, arranged for few expensive operations per pair (three square roots,
+    one exponential, two divisions): the terms of ``b`` alone (``s_b e_b``, ``s_b²``) are formed once per
+    sub-step, and the force's constant factors are folded,
+
+        f_ab = w_ab · (v0 / 2σ) exp(-root / 2σ) · (n1 + n2) / root · (r_ab / n1 + q_ab / n2),
+
+    with ``n1 = |r_ab|``, ``q_ab = r_ab - s_b e_b``, ``n2 = |q_ab|``, ``root = 2b``."""
     dt = time_step / substeps
     cos_phi = math.cos(FIELD_OF_VIEW_DEG / 2.0 / 180.0 * math.pi)
     ax = ay = torch.zeros_like(x)
     max_speed = v_pref * MAX_SPEED_MULTIPLIER
+    scale, rate = v0 / (2.0 * sigma), -0.5 / sigma
     for _ in range(int(substeps)):
         tx, ty = torch.where(has_goal, gx - x, vx), torch.where(has_goal, gy - y, vy)
         norm = torch.sqrt(tx * tx + ty * ty)
         norm = torch.where(norm == 0, torch.ones_like(norm), norm)
         ex, ey = tx / norm, ty / norm
-        speed = torch.sqrt(vx * vx + vy * vy)
+        s = POTENTIAL_STEP * torch.sqrt(vx * vx + vy * vy)  # s_b  [b, B]
+        sex, sey, ss = (s * ex).unsqueeze(0), (s * ey).unsqueeze(0), (s * s).unsqueeze(0)
         rx, ry = x.unsqueeze(1) - x.unsqueeze(0), y.unsqueeze(1) - y.unsqueeze(0)  # r_ab  [a, b, B]
-        s = (POTENTIAL_STEP * speed).unsqueeze(0)  # s_b  [1, b, B]
-        qx, qy = rx - s * ex.unsqueeze(0), ry - s * ey.unsqueeze(0)
+        qx, qy = rx - sex, ry - sey
         n1 = torch.sqrt(rx * rx + ry * ry)
         n2 = torch.sqrt(qx * qx + qy * qy)
         total = n1 + n2
-        inner = total * total - s * s
+        inner = total * total - ss
         root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))
-        value = v0 * torch.exp(-(0.5 * root) / sigma)
-        g = -(value / sigma) * 0.5 / (2 * root) * (2 * total)
-        w = torch.where(ex.unsqueeze(1) * -rx + ey.unsqueeze(1) * -ry > n1 * cos_phi, 1.0, OUT_OF_VIEW_FACTOR)
-        live = pair & (inner >= SQRT_FLOOR)
-        fx = (w * torch.where(live, -(rx / n1 * g + qx / n2 * g), 0.0)).sum(1)
-        fy = (w * torch.where(live, -(ry / n1 * g + qy / n2 * g), 0.0)).sum(1)
+        # field of view: b in sight of a when e_a . (-r_ab) > |r_ab| cos(phi)
+        w = torch.where(ex.unsqueeze(1) * rx + ey.unsqueeze(1) * ry < -(n1 * cos_phi), 1.0, OUT_OF_VIEW_FACTOR)
+        coef = torch.where(pair & (inner >= SQRT_FLOOR), w * torch.exp(rate * root) * (scale * total / root), 0.0)
+        c1, c2 = coef / torch.where(pair, n1, 1.0), coef / torch.where(pair, n2, 1.0)  # a = b: no force, no 0/0
+        fx = (c1 * rx + c2 * qx).sum(1)
+        fy = (c1 * ry + c2 * qy).sum(1)
         fx = (1.0 / tau) * (v_pref * ex - vx) + fx
         fy = (1.0 / tau) * (v_pref * ey - vy) + fy
         x, y = x + vx * dt + 0.5 * fx * dt ** 2, y + vy * dt + 0.5 * fy * dt ** 2
@@ -186,9 +193,9 @@ def compiled_social_force_velocities(
     last). Compiled on first use (eager fallback with a warning): a static graph for the first shape, one
     with dynamic sizes if another comes (torch.compile's default).
     The same terms, but the norms are square roots of sums of squares (eager's ``vector_norm`` rounds
-    differently) and inductor fuses the sums: float32 answers differ from the eager function's by rounding,
-    which the sub-steps carry on (``experiments/human_model_agreement.py --backend compiled`` measures it
-    against the package)."""
+    differently), the force's constant factors are folded (:func:`_scenes_last_velocities`) and inductor fuses
+    the sums: float32 answers differ from the eager function's by rounding, which the sub-steps carry on
+    (``experiments/human_model_agreement.py --backend compiled`` measures it against the package)."""
     from crowdrl.compile import CPP_WRAPPER, LazyCompiled
 
     fn = _COMPILED.get("fn")
@@ -209,3 +216,4 @@ def compiled_social_force_velocities(
     if mask is not None:
         vel = torch.where(mask.unsqueeze(-1), vel, velocity)
     return vel
+
