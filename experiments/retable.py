@@ -2,10 +2,10 @@
 
 For each ``results/**/manifest.json`` in git: the folder's tracked files are copied to a temporary folder and
 ``reproduce.py`` is called there with the settings its manifest and table name (budget, scenarios, seeds,
-variants, encoders, learner, levers, lidar), which trains nothing when every run's records are there; the
-rebuilt ``table.json`` rows are compared with the committed ones. A folder that tracks fewer run records than
-its table has runs is skipped (a rebuild would train). Prints one line per folder; exit status 1 if a rebuilt
-table differs or a rebuild fails.
+variants, encoders, learner, levers, lidar; the committed ceilings for a table with a ceiling row), which
+trains nothing when every run's records are there; the rebuilt ``table.json`` rows are compared with the
+committed ones. A folder that tracks fewer run records than its table has runs is skipped (a rebuild would
+train). Prints one line per folder; exit status 1 if a rebuilt table differs or a rebuild fails.
 
     python experiments/retable.py                                  # every committed table
     python experiments/retable.py results/demo-intrinsic results/obstacles-demo/room
@@ -23,6 +23,8 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+# the ceiling files every committed table with a ceiling row was made with (relative: reproduce.py runs in the repo)
+CEILINGS = "results/ceiling"
 
 
 def tracked(pattern: str) -> list[str]:
@@ -40,6 +42,8 @@ def overrides(table: dict) -> list[str]:
            f"planning={str(man.get('planning', False)).lower()}", f"seeds=[{','.join(map(str, table['seeds']))}]",
            f"variants=[{','.join(variants)}]", f"encoders=[{','.join(encoders)}]", f"scenarios=[{','.join(scenarios)}]",
            "jobs=1"]
+    if any(r["method"] == "ceiling" for r in rows):  # made with ceiling=: the committed ceilings (results/ceiling)
+        out.append(f"ceiling={CEILINGS}")
     counterfactual = man.get("counterfactual")
     if counterfactual is None:  # a manifest from before the key: the plain learner
         return [*out, "train_learner=plain"]

@@ -77,6 +77,23 @@ def test_reproduce_writes_the_table_with_intervals_and_the_figures(reproduced):
                 assert EVAL_KEYS <= set(rec) and rec["episodes"] == 6 and rec["scenario"] == scenario
     md = (reproduced / "table.md").read_text()
     assert "## circle" in md and "## square" in md and "(0.940)" in md
+    # the minutes per run count every segment of the runs killed and resumed (summary.json's run_s)
+    minutes = [json.loads((reproduced / "runs" / f"{v}-s{s}" / "summary.json").read_text())["run_s"] / 60
+               for v in ("egreedy", "re3") for s in (0, 1)]
+    assert (f"test per run (`summary.json`; every segment of a resumed run): {min(minutes):.1f}–{max(minutes):.1f} min."
+            in md)
+
+
+def test_retable_rebuilds_a_table_with_a_ceiling_row_with_the_committed_ceilings():
+    from retable import overrides
+
+    manifest = {"budget": "episodes", "train_scenario": "doorway", "episodes": 1000}
+    rows = [{"method": "egreedy", "scenario": "doorway"}, {"method": "orca", "scenario": "doorway"}]
+    plain = overrides({"manifest": manifest, "seeds": [0, 1], "rows": rows})
+    assert not any(a.startswith("ceiling=") for a in plain) and "seeds=[0,1]" in plain
+    gap = overrides({"manifest": manifest, "seeds": [0, 1], "rows": [*rows, {"method": "ceiling", "scenario": "doorway"}]})
+    assert [a for a in gap if a not in plain] == ["ceiling=results/ceiling"] and set(plain) <= set(gap)
+    assert (ROOT / "results" / "ceiling" / "doorway.json").is_file()  # where the committed tables' ceiling rows come from
 
 
 def test_reproduce_rerun_trains_nothing_and_refuses_other_settings(reproduced):
@@ -174,9 +191,17 @@ def test_reproduce_resumes_killed_runs(reproduced):
     validation logged twice, status completed."""
     for name in json.loads((reproduced / "killed.json").read_text()):
         run_dir = reproduced / "runs" / name
-        assert json.loads((run_dir / "summary.json").read_text())["frames"] == 256
+        summary = json.loads((run_dir / "summary.json").read_text())
+        assert summary["frames"] == 256
         assert json.loads((run_dir / "status.json").read_text())["state"] == "completed"
         rows = [json.loads(line) for line in (run_dir / "scalars.jsonl").read_text().splitlines()]
+        # run_s: the whole run's collection, updates and validation and its test; the timers go on across the
+        # kill from the checkpoint (each logged row's at most the next one's), so the first segment counts
+        spent = [sum(v for k, v in r.items() if k.startswith("time/") and k.endswith("_s")) for r in rows
+                 if r["kind"] == "train"]
+        assert spent == sorted(spent) and spent[0] > 0 and spent[-1] <= sum(summary["timers_s"].values())
+        assert summary["run_s"] == pytest.approx(sum(summary["timers_s"].values()) + summary["test_s"], rel=1e-9)
+        assert 0 < summary["test_s"] < summary["wall_s"]
         val_frames = [r["frames"] for r in rows if r["kind"] == "val"]
         assert val_frames == sorted(set(val_frames))
 

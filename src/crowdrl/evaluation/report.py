@@ -269,15 +269,16 @@ def read_scenario_record(path: Path | str, scenario: str) -> dict[str, Any]:
 
 
 def read_summary(path: Path | str) -> dict[str, Any]:
-    """A run's ``summary.json`` read back: its ``test.metrics`` checked (:func:`check_metrics`) and
-    ``wall_s`` a finite number >= 0 when present; :class:`RecordError` naming the file and field."""
+    """A run's ``summary.json`` read back: its ``test.metrics`` checked (:func:`check_metrics`) and ``wall_s``,
+    ``test_s``, ``run_s`` finite numbers >= 0 when present; :class:`RecordError` naming the file and field."""
     data = read_json_record(path)
     test = data.get("test")
     if not isinstance(test, dict):
         raise RecordError(f"{path}: test: expected a JSON object, got {test!r}")
     check_metrics(test.get("metrics"), f"{path}: test.metrics", separation_key="discomfort_min_separation")
-    if "wall_s" in data and not (_number(data["wall_s"]) and data["wall_s"] >= 0):
-        raise RecordError(f"{path}: wall_s: must be a finite number >= 0, got {data['wall_s']!r}")
+    for key in ("wall_s", "test_s", "run_s"):
+        if key in data and not (_number(data[key]) and data[key] >= 0):
+            raise RecordError(f"{path}: {key}: must be a finite number >= 0, got {data[key]!r}")
     return data
 
 

@@ -150,11 +150,17 @@ def markdown(plan: Plan, rows: list[dict[str, Any]], wall_s: float | None, wall_
              "pair of seeds "
              "[95 % CI]. ORCA is deterministic: one evaluation.",
              ""]
-    run_minutes = [read_summary(plan.run_dir(m, s) / "summary.json")["wall_s"] / 60
-                   for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
+    summaries = [read_summary(plan.run_dir(m, s) / "summary.json")
+                 for m in plan.methods for s in plan.seeds if (plan.run_dir(m, s) / "summary.json").exists()]
+    # run_s: the whole run, resumes included; a summary written before it has wall_s, its last segment only
+    run_minutes = [d.get("run_s", d["wall_s"]) / 60 for d in summaries]
     if run_minutes:
-        lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`): {min(run_minutes):.1f}–"
-                  f"{max(run_minutes):.1f} min."]
+        older = sum("run_s" not in d for d in summaries)
+        said = ("" if older == len(summaries) else
+                "; every segment of a resumed run" + (f", but {older} recorded before `run_s`: their last segment"
+                                                      if older else ""))
+        lines += [f"Training + validation + {plan.train_scenario} test per run (`summary.json`{said}): "
+                  f"{min(run_minutes):.1f}–{max(run_minutes):.1f} min."]
     if wall_s is not None:
         how = f" ({wall_how})" if wall_how else ""
         lines += [f"Wall-clock of the `reproduce.py` call{how} that trained or tested the last runs: "

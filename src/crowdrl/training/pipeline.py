@@ -59,8 +59,13 @@ def run_training(run: RunConfig, run_dir: Path | str, *, prepare: Callable[[], N
     try:
         with stop_signals(trainer):
             summary = trainer.train()
+        tested = time.perf_counter()
         result = evaluate_best(run, run_dir)
-        summary = {**summary, "test": result, "wall_s": time.perf_counter() - start}
+        test_s = time.perf_counter() - tested
+        # wall_s: this call (a resumed run: its last segment); run_s: the whole run, every segment's collection,
+        # updates and validation (the checkpointed timers) and the test
+        summary = {**summary, "test": result, "wall_s": time.perf_counter() - start, "test_s": test_s,
+                   "run_s": sum(trainer.counters.timers().values()) + test_s}
         trainer.emit({"kind": "test", "frames": trainer.counters.frames,
                       **{f"test/{k}": v for k, v in result["metrics"].items()}})
         trainer.write_status("completed", **summary)
