@@ -9,10 +9,10 @@
 Each checkpoint acts through its own actor (``make_actor``: the planner it was trained with, or the depth and
 width given) on the ceiling file's cases, by ``env.rollout`` on the training env maker, under the deterministic
 exploration type: the one rollout path of ``crowdrl.evaluation``. Per checkpoint it prints the success, the
-failures where a path exists (avoidable) or none does, the time over the ceiling on the cases both solve, and
-that time split in two: the longer path (detour) and the lower mean speed, with the share of slow steps
-(speed at most 0.2 m/s, hesitation) of the agent and of the ceiling's paths, and the acting cost per step.
-``--json FILE`` writes the numbers.
+collisions (and how many touched a wall, no human), the failures where a path exists (avoidable) or none does,
+the time over the ceiling on the cases both solve, and that time split in two: the longer path (detour) and the
+lower mean speed, with the share of slow steps (speed at most 0.2 m/s, hesitation) of the agent and of the
+ceiling's paths, and the acting cost per step. ``--json FILE`` writes the numbers.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from crowdrl.evaluation.ceiling import check_stream, gap, read_ceiling
 from crowdrl.evaluation.rollout import crowd_env_of, episode_records
-from crowdrl.sim.crowd import SUCCESS
+from crowdrl.sim.crowd import COLLISION, SUCCESS
 from crowdrl.sim.kinematics import action_table
 from crowdrl.sim.oracle import SOLVED
 from crowdrl.tables import markdown_table
@@ -50,7 +50,7 @@ def rollout_cases(run, net, predictor, ceiling, cases: int, batch: int) -> dict[
     actor = make_actor(run, env, net, predictor)
     crowd = crowd_env_of(env)
     max_steps = crowd.config.max_steps
-    out: dict[str, list] = {"events": [], "lengths": [], "path": [], "slow": [], "steps_s": []}
+    out: dict[str, list] = {"events": [], "lengths": [], "path": [], "slow": [], "steps_s": [], "last_separation": []}
     B = crowd.num_envs
     for first in range(0, cases, B):
         n = min(B, cases - first)
@@ -68,6 +68,10 @@ def rollout_cases(run, net, predictor, ceiling, cases: int, batch: int) -> dict[
         out["lengths"] += rec["lengths"][:n].tolist()
         out["path"] += (torch.where(inside, speed, 0.0).sum(1) * crowd.config.time_step)[:n].tolist()
         out["slow"] += (inside & (speed <= SLOW + 1e-6)).sum(1)[:n].tolist()
+        # the closest robot-human surface distance in the episode's last step: a collision with it >= 0 touched no
+        # human, so the robot hit a wall (crowdrl.sim.crowd.step_reward: a human contact is a separation < 0)
+        last = roll.get(("next", "min_separation")).reshape(speed.shape).gather(1, (rec["lengths"] - 1).unsqueeze(1))
+        out["last_separation"] += last.squeeze(1)[:n].tolist()
         out["steps_s"].append(seconds / (B * speed.shape[1]))
     return out
 
@@ -88,7 +92,9 @@ def analyse(ceiling, agent: dict[str, list]) -> dict[str, float]:
     slower = [(ta - to) - d for ta, to, d in zip(t_a, t_o, detour)]
     g = gap(ceiling, agent["events"], agent["lengths"])
     mean = statistics.fmean
+    walls = sum(e == COLLISION and sep >= 0 for e, sep in zip(agent["events"], agent["last_separation"]))
     return {"success": sum(e == SUCCESS for e in agent["events"]) / ceiling.cases,
+            "collisions": sum(e == COLLISION for e in agent["events"]), "wall_collisions": walls,
             "avoidable": g["avoidable_failures"], "unavoidable": g["unavoidable_failures"],
             "unknown": g["unknown_failures"], "beyond": g["beyond_ceiling"], "both_solved": len(both),
             "time_agent": mean(t_a), "time_ceiling": mean(t_o), "time_over": mean(t_a) - mean(t_o),
@@ -146,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                      "safety_horizon": run.planning.safety_horizon, "progress_bias": run.planning.progress_bias,
                      **analyse(ceiling, agent)})
         print(f"done {ck}", file=sys.stderr, flush=True)
-    keys = ["success", "avoidable", "unavoidable", "time_over", "over_from_detour", "over_from_speed", "path_agent",
+    keys = ["success", "collisions", "wall_collisions", "avoidable", "unavoidable",
+            "time_over", "over_from_detour", "over_from_speed", "path_agent",
             "path_ceiling", "speed_agent", "speed_ceiling", "slow_steps_agent", "slow_steps_ceiling", "ms_per_step"]
     print(f"{cases} {ceiling.scenario} {ceiling.split} cases, seed {ceiling.seed}; ceiling: "
           f"{ceiling.counts()[SOLVED]} solved, mean time {ceiling.mean_time():.2f} s")
