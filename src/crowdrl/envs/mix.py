@@ -168,9 +168,8 @@ class ScenarioMixEnv(EnvBase):
         leaves = dict(any_part.observation_spec.items())
         dtype = leaves["robot"].dtype
         K, (P, V) = self.obstacle_tokens, self.polygons_shape
-        spec = Composite({key: leaf.clone() for key, leaf in leaves.items() if key not in OBSTACLE_OBS}, shape=(),
-                         device=dev)
-        spec = Composite({key: _batched(leaf, B) for key, leaf in spec.items()}, shape=(B,), device=dev)
+        spec = Composite({key: _batched(leaf, B) for key, leaf in leaves.items() if key not in OBSTACLE_OBS},
+                         shape=(B,), device=dev)
         if P > 0:
             spec["obstacles"] = Unbounded((B, K, 4), dtype=dtype, device=dev)
             spec["obstacles_mask"] = Categorical(2, (B, K), dtype=torch.bool, device=dev)
