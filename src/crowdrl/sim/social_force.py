@@ -124,51 +124,50 @@ def social_force_velocities(
     return vel
 
 
-def _scenes_last_velocities(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, gx: Tensor, gy: Tensor, v_pref: Tensor,
-                            has_goal: Tensor, pair: Tensor, time_step: float, substeps: int, tau: float, v0: float,
-                            sigma: float) -> tuple[Tensor, Tensor]:
-    """:func:`social_force_velocities`' sub-steps on components laid out scenes last (``[M, B]``, pairs
-    ``[a, b, B]``), the layout in which inductor vectorises every fused loop over the scenes. The same terms as
-    :func:`_repulsion` and the loop above, arranged for few expensive operations per pair (three square roots,
-    one exponential, two divisions): the terms of ``b`` alone (``s_b e_b``, ``s_b²``) are formed once per
-    sub-step, and the force's constant factors are folded,
+def _scenes_last_substep(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, ax: Tensor, ay: Tensor, gx: Tensor, gy: Tensor,
+                         v_pref: Tensor, has_goal: Tensor, pair: Tensor, dt: float, tau: float, v0: float, sigma: float
+                         ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One of :func:`social_force_velocities`' sub-steps on components laid out scenes last (``[M, B]``;
+    ``pair [a, b, B]``): ``(x, y, vx, vy, ax, ay)`` after it, ``a`` the force it applied (the next sub-step's
+    ``a_prev``). The same terms as :func:`_repulsion` and the eager loop, arranged for inductor to fuse the whole
+    sub-step into loops vectorised over the scenes: the sum over the other pedestrians ``b`` is written out
+    (``M`` terms of ``[M, B]``, no reduction to materialise), the terms of ``b`` alone (``s_b e_b``, ``s_b²``)
+    are formed once, and the force's constant factors are folded (three square roots, one exponential and two
+    divisions per pair):
 
         f_ab = w_ab · (v0 / 2σ) exp(-root / 2σ) · (n1 + n2) / root · (r_ab / n1 + q_ab / n2),
 
     with ``n1 = |r_ab|``, ``q_ab = r_ab - s_b e_b``, ``n2 = |q_ab|``, ``root = 2b``."""
-    dt = time_step / substeps
     cos_phi = math.cos(FIELD_OF_VIEW_DEG / 2.0 / 180.0 * math.pi)
-    ax = ay = torch.zeros_like(x)
-    max_speed = v_pref * MAX_SPEED_MULTIPLIER
     scale, rate = v0 / (2.0 * sigma), -0.5 / sigma
-    for _ in range(int(substeps)):
-        tx, ty = torch.where(has_goal, gx - x, vx), torch.where(has_goal, gy - y, vy)
-        norm = torch.sqrt(tx * tx + ty * ty)
-        norm = torch.where(norm == 0, torch.ones_like(norm), norm)
-        ex, ey = tx / norm, ty / norm
-        s = POTENTIAL_STEP * torch.sqrt(vx * vx + vy * vy)  # s_b  [b, B]
-        sex, sey, ss = (s * ex).unsqueeze(0), (s * ey).unsqueeze(0), (s * s).unsqueeze(0)
-        rx, ry = x.unsqueeze(1) - x.unsqueeze(0), y.unsqueeze(1) - y.unsqueeze(0)  # r_ab  [a, b, B]
-        qx, qy = rx - sex, ry - sey
+    tx, ty = torch.where(has_goal, gx - x, vx), torch.where(has_goal, gy - y, vy)
+    norm = torch.sqrt(tx * tx + ty * ty)
+    norm = torch.where(norm == 0, torch.ones_like(norm), norm)
+    ex, ey = tx / norm, ty / norm
+    s = POTENTIAL_STEP * torch.sqrt(vx * vx + vy * vy)  # s_b  [b, B]
+    sex, sey, ss = s * ex, s * ey, s * s
+    push_x, push_y = torch.zeros_like(x), torch.zeros_like(y)
+    for b in range(x.shape[0]):
+        rx, ry = x - x[b], y - y[b]  # r_ab for every a  [a, B]
+        qx, qy = rx - sex[b], ry - sey[b]
         n1 = torch.sqrt(rx * rx + ry * ry)
         n2 = torch.sqrt(qx * qx + qy * qy)
         total = n1 + n2
-        inner = total * total - ss
+        inner = total * total - ss[b]
         root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))
         # field of view: b in sight of a when e_a . (-r_ab) > |r_ab| cos(phi)
-        w = torch.where(ex.unsqueeze(1) * rx + ey.unsqueeze(1) * ry < -(n1 * cos_phi), 1.0, OUT_OF_VIEW_FACTOR)
-        coef = torch.where(pair & (inner >= SQRT_FLOOR), w * torch.exp(rate * root) * (scale * total / root), 0.0)
-        c1, c2 = coef / torch.where(pair, n1, 1.0), coef / torch.where(pair, n2, 1.0)  # a = b: no force, no 0/0
-        fx = (c1 * rx + c2 * qx).sum(1)
-        fy = (c1 * ry + c2 * qy).sum(1)
-        fx = (1.0 / tau) * (v_pref * ex - vx) + fx
-        fy = (1.0 / tau) * (v_pref * ey - vy) + fy
-        x, y = x + vx * dt + 0.5 * fx * dt ** 2, y + vy * dt + 0.5 * fy * dt ** 2
-        vx, vy = vx + 0.5 * (ax + fx) * dt, vy + 0.5 * (ay + fy) * dt
-        ax, ay = fx, fy
-        cap = (max_speed / torch.sqrt(vx * vx + vy * vy)).clamp(max=1.0)
-        vx, vy = vx * cap, vy * cap
-    return vx, vy
+        w = torch.where(ex * rx + ey * ry < -(n1 * cos_phi), 1.0, OUT_OF_VIEW_FACTOR)
+        live = pair[:, b]
+        coef = torch.where(live & (inner >= SQRT_FLOOR), w * torch.exp(rate * root) * (scale * total / root), 0.0)
+        c1, c2 = coef / torch.where(live, n1, 1.0), coef / torch.where(live, n2, 1.0)  # a = b: no force, no 0/0
+        push_x = push_x + (c1 * rx + c2 * qx)
+        push_y = push_y + (c1 * ry + c2 * qy)
+    fx = (1.0 / tau) * (v_pref * ex - vx) + push_x
+    fy = (1.0 / tau) * (v_pref * ey - vy) + push_y
+    x, y = x + vx * dt + 0.5 * fx * dt ** 2, y + vy * dt + 0.5 * fy * dt ** 2
+    vx, vy = vx + 0.5 * (ax + fx) * dt, vy + 0.5 * (ay + fy) * dt
+    cap = (v_pref * MAX_SPEED_MULTIPLIER / torch.sqrt(vx * vx + vy * vy)).clamp(max=1.0)
+    return x, y, vx * cap, vy * cap, fx, fy
 
 
 _COMPILED: dict[str, object] = {}
@@ -189,18 +188,18 @@ def compiled_social_force_velocities(
     mask: Tensor | None = None,
 ) -> Tensor:
     """:func:`social_force_velocities` through ``torch.compile`` (the simulator's ``orca_backend="compiled"``):
-    the sub-steps unrolled and fused into loops vectorised over the scenes (components laid out scenes
-    last). Compiled on first use (eager fallback with a warning): a static graph for the first shape, one
-    with dynamic sizes if another comes (torch.compile's default).
-    The same terms, but the norms are square roots of sums of squares (eager's ``vector_norm`` rounds
-    differently), the force's constant factors are folded (:func:`_scenes_last_velocities`) and inductor fuses
-    the sums: float32 answers differ from the eager function's by rounding, which the sub-steps carry on
+    one sub-step (:func:`_scenes_last_substep`, components laid out scenes last) compiled and fused into loops
+    vectorised over the scenes, called ``substeps`` times. Compiled on first use (eager fallback with a
+    warning): a static graph for the first shape, one with dynamic sizes if another comes (torch.compile's
+    default). The same terms, but the norms are square roots of sums of squares (eager's ``vector_norm`` rounds
+    differently), the force's constant factors are folded and inductor fuses the sums: float32 answers differ
+    from the eager function's by rounding, which the sub-steps carry on
     (``experiments/human_model_agreement.py --backend compiled`` measures it against the package)."""
     from crowdrl.compile import CPP_WRAPPER, LazyCompiled
 
     fn = _COMPILED.get("fn")
     if fn is None:
-        fn = _COMPILED["fn"] = LazyCompiled(_scenes_last_velocities, dynamic=None, what="the social-force humans",
+        fn = _COMPILED["fn"] = LazyCompiled(_scenes_last_substep, dynamic=None, what="the social-force humans",
                                               options={"max_fusion_size": 4096, **CPP_WRAPPER})
     B, M, _ = position.shape
     eye = torch.eye(M, dtype=torch.bool, device=position.device)
@@ -210,8 +209,12 @@ def compiled_social_force_velocities(
     x, y = position.permute(2, 1, 0).contiguous()  # [M, B] each
     vx, vy = velocity.permute(2, 1, 0).contiguous()
     gx, gy = goal.permute(2, 1, 0).contiguous()
-    vx, vy = fn(x, y, vx, vy, gx, gy, preferred_speed.t().contiguous(), has_goal.t().contiguous(), pair,
-                float(time_step), int(substeps), float(tau), float(v0), float(sigma))
+    v_pref, has_goal = preferred_speed.t().contiguous(), has_goal.t().contiguous()
+    ax = ay = torch.zeros_like(x)  # a pedestrian starts the call at rest in acceleration
+    dt = float(time_step) / int(substeps)
+    for _ in range(int(substeps)):  # one compiled sub-step, called substeps times: a small graph, compiled once
+        x, y, vx, vy, ax, ay = fn(x, y, vx, vy, ax, ay, gx, gy, v_pref, has_goal, pair, dt, float(tau), float(v0),
+                                  float(sigma))
     vel = torch.stack((vx, vy), -1).transpose(0, 1)  # [B, M, 2]
     if mask is not None:
         vel = torch.where(mask.unsqueeze(-1), vel, velocity)
