@@ -125,15 +125,16 @@ def social_force_velocities(
 
 
 def _scenes_last_substep(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, ax: Tensor, ay: Tensor, gx: Tensor, gy: Tensor,
-                         v_pref: Tensor, has_goal: Tensor, pair: Tensor, dt: float, tau: float, v0: float, sigma: float
-                         ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+                         v_pref: Tensor, has_goal: Tensor, present: Tensor, dt: float, tau: float, v0: float,
+                         sigma: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """One of :func:`social_force_velocities`' sub-steps on components laid out scenes last (``[M, B]``;
-    ``pair [a, b, B]``): ``(x, y, vx, vy, ax, ay)`` after it, ``a`` the force it applied (the next sub-step's
-    ``a_prev``). The same terms as :func:`_repulsion` and the eager loop, arranged for inductor to fuse the whole
-    sub-step into loops vectorised over the scenes: the sum over the other pedestrians ``b`` is written out
-    (``M`` terms of ``[M, B]``, no reduction to materialise), the terms of ``b`` alone (``s_b e_b``, ``s_b²``)
-    are formed once, and the force's constant factors are folded (three square roots, one exponential and two
-    divisions per pair):
+    ``present [M, B]``: who takes part, the pairs of two present pedestrians interacting): ``(x, y, vx, vy,
+    ax, ay)`` after it, ``a`` the force it applied (the next sub-step's ``a_prev``). The same terms as
+    :func:`_repulsion` and the eager loop, arranged for inductor to fuse the whole sub-step into loops
+    vectorised over the scenes: the sum over the other pedestrians ``b`` is written out (``M`` terms of
+    ``[M, B]``, no reduction to materialise), the terms of ``b`` alone (``s_b e_b``, ``s_b²``) are formed once,
+    and the force's constant factors are folded (three square roots, one exponential and two divisions per
+    pair):
 
         f_ab = w_ab · (v0 / 2σ) exp(-root / 2σ) · (n1 + n2) / root · (r_ab / n1 + q_ab / n2),
 
@@ -147,6 +148,7 @@ def _scenes_last_substep(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, ax: Tenso
     s = POTENTIAL_STEP * torch.sqrt(vx * vx + vy * vy)  # s_b  [b, B]
     sex, sey, ss = s * ex, s * ey, s * s
     push_x, push_y = torch.zeros_like(x), torch.zeros_like(y)
+    index = torch.arange(x.shape[0], device=x.device).unsqueeze(1)  # a  [M, 1]
     for b in range(x.shape[0]):
         rx, ry = x - x[b], y - y[b]  # r_ab for every a  [a, B]
         qx, qy = rx - sex[b], ry - sey[b]
@@ -157,7 +159,7 @@ def _scenes_last_substep(x: Tensor, y: Tensor, vx: Tensor, vy: Tensor, ax: Tenso
         root = torch.sqrt(inner.clamp_min(SQRT_FLOOR))
         # field of view: b in sight of a when e_a . (-r_ab) > |r_ab| cos(phi)
         w = torch.where(ex * rx + ey * ry < -(n1 * cos_phi), 1.0, OUT_OF_VIEW_FACTOR)
-        live = pair[:, b]
+        live = present & present[b] & (index != b)  # pairs (a, b) of two present pedestrians, a != b
         coef = torch.where(live & (inner >= SQRT_FLOOR), w * torch.exp(rate * root) * (scale * total / root), 0.0)
         c1, c2 = coef / torch.where(live, n1, 1.0), coef / torch.where(live, n2, 1.0)  # a = b: no force, no 0/0
         push_x = push_x + (c1 * rx + c2 * qx)
@@ -202,19 +204,17 @@ def compiled_social_force_velocities(
         fn = _COMPILED["fn"] = LazyCompiled(_scenes_last_substep, dynamic=None, what="the social-force humans",
                                               options={"max_fusion_size": 4096, **CPP_WRAPPER})
     B, M, _ = position.shape
-    eye = torch.eye(M, dtype=torch.bool, device=position.device)
-    pair = ~eye if mask is None else ~eye & mask.unsqueeze(1) & mask.unsqueeze(2)
-    pair = pair.expand(B, M, M).permute(1, 2, 0).contiguous()  # [a, b, B]
+    present = torch.ones(M, B, dtype=torch.bool, device=position.device) if mask is None else mask.t().contiguous()
     has_goal = torch.ones(B, M, dtype=torch.bool, device=position.device) if has_goal is None else has_goal
     x, y = position.permute(2, 1, 0).contiguous()  # [M, B] each
     vx, vy = velocity.permute(2, 1, 0).contiguous()
     gx, gy = goal.permute(2, 1, 0).contiguous()
     v_pref, has_goal = preferred_speed.t().contiguous(), has_goal.t().contiguous()
-    ax = ay = torch.zeros_like(x)  # a pedestrian starts the call at rest in acceleration
+    ax, ay = torch.zeros_like(x), torch.zeros_like(y)  # at rest in acceleration (two tensors: one graph, not an aliased one)
     dt = float(time_step) / int(substeps)
     for _ in range(int(substeps)):  # one compiled sub-step, called substeps times: a small graph, compiled once
-        x, y, vx, vy, ax, ay = fn(x, y, vx, vy, ax, ay, gx, gy, v_pref, has_goal, pair, dt, float(tau), float(v0),
-                                  float(sigma))
+        x, y, vx, vy, ax, ay = fn(x, y, vx, vy, ax, ay, gx, gy, v_pref, has_goal, present, dt, float(tau),
+                                  float(v0), float(sigma))
     vel = torch.stack((vx, vy), -1).transpose(0, 1)  # [B, M, 2]
     if mask is not None:
         vel = torch.where(mask.unsqueeze(-1), vel, velocity)
