@@ -388,8 +388,10 @@ def human_cell_name(model: str, visible: bool) -> str:
 
 def compare_humans(args, step_fn) -> tuple[list[dict], dict]:
     """The humans' models (:data:`HUMAN_CELLS`: model, robot visible) in ``args.scenario`` at every
-    (threads, N, B), each measurement taken for every cell back to back; each row gets its rates' ratios
-    to invisible ORCA's (``core/orca``, ``env/orca``). No reference column (it simulates ORCA only)."""
+    (threads, N, B), each measurement taken for every cell back to back, ``args.rounds`` times in turn; each
+    row is its cell's median round (``core_sps_rounds``: every round's rate) and gets its rates' ratios to
+    invisible ORCA's (``core/orca``: of the medians; ``core_vs_orca_rounds``: round by round; ``env/orca``).
+    No reference column (it simulates ORCA only)."""
     rows = []
     for threads in args.threads:
         torch.set_num_threads(threads)
@@ -399,8 +401,18 @@ def compare_humans(args, step_fn) -> tuple[list[dict], dict]:
                     for c in HUMAN_CELLS}
             for b in args.batch_sizes:
                 cells = {c: dict(humans=human_cell_name(*c), threads=threads, N=n, B=b) for c in HUMAN_CELLS}
+                rounds = {c: [] for c in HUMAN_CELLS}
+                for _ in range(args.rounds):  # the cells in turn, so that a drift of the machine reaches them all
+                    for c in HUMAN_CELLS:
+                        rounds[c].append(bench_core(cfgs[c], b, args.steps, args.warmup, args.seed, step_fn,
+                                                    args.max_seconds))
                 for c in HUMAN_CELLS:
-                    cells[c].update(bench_core(cfgs[c], b, args.steps, args.warmup, args.seed, step_fn, args.max_seconds))
+                    ranked = sorted(rounds[c], key=lambda r: r["core_sps"])
+                    cells[c].update(ranked[(len(ranked) - 1) // 2], rounds=args.rounds,
+                                    core_sps_rounds=[r["core_sps"] for r in rounds[c]])
+                orca_rounds = cells[HUMAN_CELLS[0]]["core_sps_rounds"]
+                for c in HUMAN_CELLS:
+                    cells[c]["core_vs_orca_rounds"] = [r / o for r, o in zip(cells[c]["core_sps_rounds"], orca_rounds)]
                 if not args.no_env:
                     for c in HUMAN_CELLS:
                         cells[c].update(bench_env(cfgs[c], b, args.steps, args.warmup, args.seed, args.max_seconds))
@@ -435,6 +447,8 @@ def parse_args(argv=None):
                    help="measure the humans' models (orca, orca seeing the robot, social_force, social_force seeing "
                    "the robot, linear) in --scenario in the same run, at B = 1024, N = 10 unless "
                    "--batch-sizes/--num-humans are given, with the rate ratios to invisible orca")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="--compare-humans: measure every cell this many times in turn; rows show the median round")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-env", action="store_true", help="skip the CrowdNavEnv column")
     p.add_argument("--no-memory", action="store_true", help="skip the memory probe subprocess")
@@ -445,6 +459,10 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.memory_batch_size < 1:
         p.error(f"--memory-batch-size must be >= 1, got {args.memory_batch_size}")
+    if args.rounds < 1:
+        p.error(f"--rounds must be >= 1, got {args.rounds}")
+    if args.rounds > 1 and not args.compare_humans:
+        p.error("--rounds applies to --compare-humans only")
     args.threads = [int(t) for t in str(args.threads).split(",")]
     args.steps = args.steps or (10 if args.quick else 30)
     args.max_seconds = args.max_seconds or (4.0 if args.quick else 15.0)
@@ -473,7 +491,9 @@ COMPARE_COLUMNS = [Column("scenario"), Column("edges"), *COLUMNS,
 
 # --compare-humans: the humans' model first, the ratios to invisible ORCA last
 HUMANS_COLUMNS = [Column("humans"), *(c for c in COLUMNS if c.key not in ("ref_sps", "speedup_vs_ref")),
-                  Column("core_vs_orca", "core/orca", ".2f"), Column("env_vs_orca", "env/orca", ".2f")]
+                  Column("core_vs_orca", "core/orca", ".2f"),
+                  Column("core_vs_orca_rounds", "core/orca by round", lambda v: f"{min(v):.2f}–{max(v):.2f}"),
+                  Column("env_vs_orca", "env/orca", ".2f")]
 
 
 def memory_note(memory: dict) -> str:
@@ -514,7 +534,7 @@ def main(argv=None) -> int:
         meta.update(scenario=f"circle,{args.compare_obstacles}", compare_obstacles=args.compare_obstacles)
         scenarios = f"scenarios circle and {args.compare_obstacles}"
     if args.compare_humans:
-        meta.update(compare_humans=True)
+        meta.update(compare_humans=True, rounds=args.rounds)
         scenarios += ", the humans' models"
     columns = COMPARE_COLUMNS if args.compare_obstacles else HUMANS_COLUMNS if args.compare_humans else COLUMNS
     emit(rows, columns=columns, meta=meta, as_json=args.json,

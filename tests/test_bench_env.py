@@ -29,3 +29,33 @@ def test_compare_obstacles_reports_both_scenarios_and_their_ratios():
     assert doorway["speedup_vs_ref"] == pytest.approx(doorway["core_sps"] / doorway["ref_sps"])
     assert 0 < doorway["ref_waypoint_share"] < 1 and "core_vs_circle" not in circle
     assert set(out["reference"]) == {"circle N=10", "doorway N=10"}
+
+
+def _bench(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "RL_LOGGING_LEVEL": "WARNING"}
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / "bench_env.py"), *args], env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_compare_humans_takes_the_median_of_rounds_and_its_ratio_to_orca():
+    proc = _bench("--compare-humans", "--batch-sizes", "4", "--steps", "2", "--warmup", "1", "--rounds", "3",
+                  "--no-memory", "--no-env", "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert out["meta"]["rounds"] == 3
+    rows = {r["humans"]: r for r in out["rows"]}
+    assert len(rows) == 6 and {"orca", "social_force", "social_force (robot visible)", "linear"} <= set(rows)
+    orca = rows["orca"]
+    for row in rows.values():
+        assert len(row["core_sps_rounds"]) == 3 and row["core_sps"] == sorted(row["core_sps_rounds"])[1]
+        assert row["core_vs_orca"] == pytest.approx(row["core_sps"] / orca["core_sps"])
+        assert row["core_vs_orca_rounds"] == pytest.approx(
+            [r / o for r, o in zip(row["core_sps_rounds"], orca["core_sps_rounds"])])
+    assert orca["core_vs_orca"] == 1.0
+
+
+@pytest.mark.parametrize("args, message", [(("--compare-humans", "--rounds", "0"), "--rounds must be >= 1, got 0"),
+                                           (("--rounds", "2",), "--rounds applies to --compare-humans only")])
+def test_bad_rounds_are_refused_naming_the_flag(args, message):
+    proc = _bench(*args, "--no-memory")
+    assert proc.returncode == 2 and message in proc.stderr
