@@ -101,7 +101,7 @@ def fingerprinted(config: dict) -> dict[str, Any]:
         if key in train and train[key] == off:
             train.pop(key)
     for k in ("total_frames", "val_every_frames", "checkpoint_every_frames", "save_buffer", "test_episodes",
-              "val_episodes", "compile_acting"):  # compile_acting: speed, and float rounding of Q
+              "val_episodes", "compile_acting", "keep_val_checkpoints"):  # compile_acting: speed, and float rounding of Q
         train.pop(k, None)
     keep["train"] = train
     if config.get("planning", {}).get("enabled"):  # planning off: hashed as a config without the section
@@ -209,6 +209,17 @@ def load_checkpoint(path: Path, fingerprint: str | None = None, *, config: dict 
             f"!= {fingerprint}); resume it with its own config (see config.yaml in its run folder)"
         )
     return data
+
+
+def val_checkpoint_name(frames: int) -> str:
+    """The file name of the network kept at the validation after ``frames`` frames (``train.keep_val_checkpoints``):
+    ``val-<frames, 9 digits>.pt``, so that names sort in training order."""
+    return f"val-{frames:09d}.pt"
+
+
+def val_checkpoints(run_dir: Path | str) -> list[Path]:
+    """A run folder's validation checkpoints (``checkpoints/val-*.pt``), in training order."""
+    return sorted(Path(run_dir, "checkpoints").glob("val-" + "[0-9]" * 9 + ".pt"))
 
 
 def is_torch_file(path: Path | str) -> bool:

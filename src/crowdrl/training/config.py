@@ -146,6 +146,9 @@ class TrainConfig:
     checkpoint_every_frames: int = 10_000
     save_buffer: bool = False  # the replay buffer in last.pt: a resume is then bit-exact (its size: docs/reliability.md)
     test_episodes: int = 1000
+    # every validation also keeps its network as checkpoints/val-<frames>.pt, with the run's timers then
+    # (experiments/time_to_quality.py tests them in order); off: best.pt and last.pt only
+    keep_val_checkpoints: bool = False
     # the acting Q network (collection, planning, validation, test) through torch.compile; off here and
     # in conf/ (speed only); make demo and the paper/episodes presets turn it on (bench_train.py --acting)
     compile_acting: bool = False

@@ -32,7 +32,7 @@ from crowdrl.evaluation import EpisodeMetrics, evaluate
 from crowdrl.exploration import make_strategy
 from crowdrl.files import atomic_write_json
 from crowdrl.training.checkpoint import (CheckpointError, config_fingerprint, load_checkpoint, merge_payload,
-                                        restore_rng, rng_state, save_checkpoint)
+                                        restore_rng, rng_state, save_checkpoint, val_checkpoint_name)
 from crowdrl.training.acting import make_acting
 from crowdrl.training.config import RunConfig, to_dict
 from crowdrl.training.counters import Counters
@@ -306,13 +306,18 @@ class Trainer:
                   for k, v in m.as_dict().items() if k in ("success_rate", "collision_rate", "timeout_rate")},
                # how far below the running best score this validation fell (0 at a new best): a collapse shows here
                "val/drop_from_best": max(0.0, c.best_val - score) if math.isfinite(c.best_val) else 0.0}
-        if score > c.best_val:
-            c.best_val, c.best_frames = score, c.frames
-            best = {"net": self.net.state_dict(), "config": self.config_dict, "frames": c.frames, "val": metrics.as_dict()}
+        if score > c.best_val or t.keep_val_checkpoints:
+            policy = {"net": self.net.state_dict(), "config": self.config_dict, "frames": c.frames,
+                      "val": metrics.as_dict()}
             for learner in self.learner.learners:  # what the planner acts with (the crowd predictor)
-                best.update(learner.policy_state())
-            save_checkpoint(self.ckpt_dir / "best.pt", best, self.fingerprint)
-            row["val/best"] = 1
+                policy.update(learner.policy_state())
+            if t.keep_val_checkpoints:  # the seconds trained before this validation: minutes to a quality
+                save_checkpoint(self.ckpt_dir / val_checkpoint_name(c.frames), {**policy, "timers_s": c.timers()},
+                                self.fingerprint)
+            if score > c.best_val:
+                c.best_val, c.best_frames = score, c.frames
+                save_checkpoint(self.ckpt_dir / "best.pt", policy, self.fingerprint)
+                row["val/best"] = 1
         self.emit(row)
         return metrics
 
