@@ -26,13 +26,14 @@ the robot-centric observation (:func:`crowdrl.envs.robot_centric.robot_centric`)
 
 A checkpoint trained among obstacles (corridor, doorway, room) takes the entity tokens of
 :func:`crowdrl.envs.robot_centric.entity_tokens` instead of the humans (``entities_rc`` ``[B, N+K, 10]``,
-``entities_mask``); its planner reads the observed obstacle edges, which the exported planner does not
-take: such a checkpoint is refused unless ``planning_depth=0``.
+``entities_mask``); its planner reads the observed obstacle edges, and so does its exported planner (layout
+``world_obstacles``: ``obstacles`` ``[B, K, 4]`` and ``obstacles_mask`` ``[B, K]`` after the humans; in open space
+one masked edge).
 
 A network that reads the lidar scan (``encoder.lidar``) takes it as one more input, last: ``lidar``
 ``[B, R]`` float32, the env's ``"lidar"`` observation (ray ``r`` at ``heading + 2πr/R``, counter-clockwise,
 metres clipped at the range; :mod:`crowdrl.sim.lidar`); its layout's name ends in ``_lidar``. Its planner
-computes the scans of predicted states itself, from the predicted humans (open space only, as above).
+computes the scans of predicted states itself, from the predicted humans and the observed edges.
 
 The greedy model returns ``q_values``, the greedy ``action`` (the first of tied maxima, as
 ``torch.argmax``) and its ``command``: the row of the unicycle action table
