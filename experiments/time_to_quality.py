@@ -30,7 +30,7 @@ import numpy as np
 
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
 from crowdrl.tables import markdown_table
-from crowdrl.training.checkpoint import val_checkpoints
+from crowdrl.training.checkpoint import load_checkpoint, val_checkpoints
 from crowdrl.training.pipeline import completed_summary
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -73,7 +73,7 @@ def test_run(folder: Path, scenario: str, episodes: int, target: float, screen: 
     if done.get("settings") != settings:  # another test: start again
         done = {"settings": settings, "tested": {}}
     for ckpt in val_checkpoints(folder):
-        data = torch.load(ckpt, map_location="cpu", weights_only=True)
+        data = load_checkpoint(ckpt)  # a truncated or foreign file is refused naming it
         entry = {"frames": int(data["frames"]), "minutes": minutes_trained(data["timers_s"]),
                  "val_success": float(data["val"]["success_rate"])}
         if entry["val_success"] < screen:
