@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
+from crowdrl.reproduction.plan import train_to_completion
 from crowdrl.tables import markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,17 +68,8 @@ def overrides(setting: str) -> list[str]:
 
 def run_one(folder: Path, setting: str, seed: int, preset: str, extra: list[str]) -> tuple[str, int]:
     """Train one run to completion (resume when it has a checkpoint); returns (folder, exit code)."""
-    status = folder / "status.json"
-    if status.exists() and json.loads(status.read_text()).get("state") == "completed":
-        return str(folder), 0
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py")]
-    if (folder / "checkpoints" / "last.pt").exists():
-        cmd += [f"resume={folder}"]
-    else:
-        cmd += [f"hydra.run.dir={folder}", f"seed={seed}", f"preset={preset}", *BASE, *overrides(setting), *extra]
-    with open(folder.parent / f"{folder.name}.log", "ab") as log:
-        code = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
-    return str(folder), code
+    return str(folder), train_to_completion(folder, [f"seed={seed}", f"preset={preset}", *BASE, *overrides(setting),
+                                                     *extra], cwd=ROOT)
 
 
 def test_run(folder: Path, scenario: str) -> int:

@@ -31,7 +31,6 @@ with a 95 % stratified-bootstrap interval (rliable), and navigation time.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
@@ -44,6 +43,7 @@ import numpy as np
 from crowdrl.evaluation.report import RecordError, read_eval_record
 from crowdrl.evaluation.stats import mean_interval
 from crowdrl.files import atomic_write_bytes, atomic_write_json
+from crowdrl.reproduction.plan import train_to_completion
 from crowdrl.tables import interval_cell, markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -86,16 +86,8 @@ def log_to(path: Path):
 
 def train_one(folder: Path, cell: str, seed: int, preset: str) -> int:
     """Train one run to completion on ``cell``'s humans (resuming a killed one); returns the exit code."""
-    status = folder / "status.json"
-    if status.exists() and json.loads(status.read_text()).get("state") == "completed":
-        return 0
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py")]
-    if (folder / "checkpoints" / "last.pt").exists():
-        cmd += [f"resume={folder}"]
-    else:
-        cmd += [f"hydra.run.dir={folder}", f"seed={seed}", f"preset={preset}", *TRAIN_BASE, *cell_overrides(cell, "env")]
-    with log_to(folder.parent / f"{folder.name}.log") as log:
-        return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    return train_to_completion(folder, [f"seed={seed}", f"preset={preset}", *TRAIN_BASE, *cell_overrides(cell, "env")],
+                               cwd=ROOT)
 
 
 def test_one(agent: str | None, out: Path, cell: str, scenario: str, episodes: int, acting: Sequence[str] = ()) -> int:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdrl.files import atomic_write_bytes, atomic_write_json, dumps_json
+from crowdrl.reproduction.plan import train_to_completion
 from crowdrl.tables import markdown_table
 from crowdrl.training.checkpoint import load_checkpoint, val_checkpoints
 from crowdrl.training.pipeline import completed_summary
@@ -42,16 +43,8 @@ RECORD = "time_to_quality.json"  # per run: each tested network's frames, minute
 
 def run_one(folder: Path, learner: str, seed: int, preset: str, scenario: str, extra: list[str]) -> int:
     """Train one run to its budget (resuming a killed one, skipping a finished one); its exit code."""
-    if completed_summary(folder) is not None:
-        return 0
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py")]
-    if (folder / "checkpoints" / "last.pt").exists():
-        cmd += [f"resume={folder}"]
-    else:
-        cmd += [f"hydra.run.dir={folder}", f"seed={seed}", f"preset={preset}", f"learner={learner}",
-                f"env={scenario}", *BASE, *extra]
-    with open(folder.parent / f"{folder.name}.log", "ab") as log:
-        return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    return train_to_completion(folder, [f"seed={seed}", f"preset={preset}", f"learner={learner}", f"env={scenario}",
+                                        *BASE, *extra], cwd=ROOT)
 
 
 def minutes_trained(timers: dict[str, float]) -> float:

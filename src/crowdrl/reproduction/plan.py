@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -357,6 +360,29 @@ def is_trained(run_dir: Path) -> bool:
     """Whether the run in ``run_dir`` finished training (its ``status.json`` says completed)."""
     status = run_dir / "status.json"
     return status.exists() and json.loads(status.read_text()).get("state") == "completed"
+
+
+def train_to_completion(run_dir: Path, overrides: Sequence[str], *, cwd: Path | None = None) -> int:
+    """Train the run in ``run_dir`` to its budget in a child ``python -m crowdrl.cli.train``; its exit code.
+
+    A finished run (:func:`is_trained`) is skipped, a killed one resumes from ``checkpoints/last.pt`` (its own
+    ``config.yaml``: ``overrides`` are not passed again), a new one starts with ``overrides``. The child's
+    output is appended to ``<run_dir>.log`` beside the folder.
+
+    Example::
+
+        train_to_completion(Path("out/runs/egreedy-s0"), ["seed=0", "preset=demo", "logger=csv"])
+    """
+    if is_trained(run_dir):
+        return 0
+    cmd = [sys.executable, "-m", "crowdrl.cli.train"]
+    if (run_dir / "checkpoints" / "last.pt").exists():
+        cmd.append(f"resume={run_dir}")
+    else:
+        cmd += [f"hydra.run.dir={run_dir}", *overrides]
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    with open(run_dir.parent / f"{run_dir.name}.log", "ab") as log:
+        return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=cwd)
 
 
 def eval_path(run_dir: Path, scenario: str) -> Path:
