@@ -20,6 +20,7 @@ onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
 from crowdrl_testing import fresh_network  # noqa: E402
+from crowdrl_testing.cli import run_cli  # noqa: E402
 from crowdrl.envs.robot_centric import robot_centric  # noqa: E402
 from crowdrl.export import ENTITY_INPUTS, INPUTS, export_onnx  # noqa: E402
 from crowdrl.sim.kinematics import action_table  # noqa: E402
@@ -234,7 +235,7 @@ def test_bad_arguments_exit_2_naming_the_argument(exported, tmp_path, bad):
     else:  # a misspelt key added with + would otherwise be silently ignored
         args.append("+opsett=18")
         words = ["opsett: not read by export.py (unknown key); allowed: checkpoint, out, format, opset, check, overwrite"]
-    proc = subprocess.run([*EXPORT, *args], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_cli("export.py", *args, cwd=tmp_path)  # in this process: the real one is tests/test_one_line_errors.py's
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr

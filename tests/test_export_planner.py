@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import torch
 
+from crowdrl_testing.cli import run_cli  # refusals, in this process
+
 onnx = pytest.importorskip("onnx")
 onnxruntime = pytest.importorskip("onnxruntime")
 
@@ -149,9 +151,7 @@ def test_a_bad_onnx_file_is_refused_naming_the_file_and_what_differs(planner_mod
 def test_evaluate_py_refuses_a_bad_onnx_file_in_one_line_writing_nothing(planner_model, tmp_path):
     path, _ = _damaged(planner_model[1], tmp_path, "newer")
     out = tmp_path / "eval"
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "evaluate.py"), f"checkpoint={path}",
-                           "eval.episodes=2", f"hydra.run.dir={out}"], env=ENV, capture_output=True, text=True,
-                          timeout=300)
+    proc = run_cli("evaluate.py", f"checkpoint={path}", "eval.episodes=2", f"hydra.run.dir={out}")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert f"checkpoint: {path}: format version {FORMAT_VERSION + 1} is newer" in proc.stderr
     assert not out.exists()

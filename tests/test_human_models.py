@@ -190,9 +190,10 @@ def test_the_gymnasium_ids_take_the_keys():
 
 
 def _cli(script: str, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "WANDB_MODE": "disabled"}
-    return subprocess.run([sys.executable, str(ROOT / "experiments" / script), *args], env=env, capture_output=True,
-                          text=True, timeout=300)
+    """``experiments/<script> args`` in this process (:func:`crowdrl_testing.cli.run_cli`)."""
+    from crowdrl_testing.cli import run_cli
+
+    return run_cli(script, *args)
 
 
 def test_evaluate_py_takes_the_humans_model_in_one_override_and_refuses_a_bad_one(tmp_path):

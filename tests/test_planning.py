@@ -10,6 +10,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
+from crowdrl_testing.cli import run_cli  # refusals, in this process
 from crowdrl.evaluation.report import read_eval_record
 from crowdrl.envs import CrowdNavEnv, robot_centric
 from crowdrl.models import SGD3QNEncoder, make_q_actor, make_q_network
@@ -346,27 +347,17 @@ def test_a_smoke_training_with_planning_through_hydra(tmp_path):
                           env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((tmp_path / "run" / "status.json").read_text())["state"] == "completed"
-    bad = subprocess.run([sys.executable, str(root / "experiments" / "train.py"), "preset=smoke",
-                          "planning.width=100", f"hydra.run.dir={tmp_path / 'bad'}"],
-                         env=env, capture_output=True, text=True, timeout=120)
+    bad = run_cli("train.py", "preset=smoke", "planning.width=100", f"hydra.run.dir={tmp_path / 'bad'}")
     assert bad.returncode == 2 and "planning.width" in bad.stderr
 
 
 def test_planning_is_an_axis_of_reproduce(tmp_path):
     """reproduce.py planning=true: a folder of runs without planning is refused (the manifest
-    records planning), and a non-boolean value is named (as subprocesses: tests import nothing
-    from experiments/)."""
+    records planning), and a non-boolean value is named (refusals: in this process)."""
     import json
-    import os
-    import subprocess
-    import sys
 
-    root = Path(__file__).resolve().parents[1]
-    cmd = [sys.executable, str(root / "experiments" / "reproduce.py"), "budget=smoke", "variants=[egreedy]",
-           "seeds=[0]", "episodes=4"]
-    env = {**os.environ, "WANDB_MODE": "offline"}
-    bad = subprocess.run([*cmd, "planning=maybe", f"out={tmp_path / 'a'}"], capture_output=True, text=True,
-                         timeout=120, cwd=root, env=env)
+    cmd = ["reproduce.py", "budget=smoke", "variants=[egreedy]", "seeds=[0]", "episodes=4"]
+    bad = run_cli(*cmd, "planning=maybe", f"out={tmp_path / 'a'}")
     assert bad.returncode == 2 and bad.stderr.strip().startswith("reproduce.py: planning"), bad.stderr[-800:]
     out = tmp_path / "b"
     out.mkdir()
@@ -375,15 +366,13 @@ def test_planning_is_an_axis_of_reproduce(tmp_path):
     plain = {"format": 1, "crowdrl_version": crowdrl.__version__, "budget": "smoke", "train_scenario": "circle",
              "episodes": 4}
     (out / "manifest.json").write_text(json.dumps(plain))
-    mixed = subprocess.run([*cmd, "planning=true", f"out={out}"], capture_output=True, text=True, timeout=120,
-                           cwd=root, env=env)
+    mixed = run_cli(*cmd, "planning=true", f"out={out}")
     assert mixed.returncode == 2 and "planning" in mixed.stderr and "other settings" in mixed.stderr, mixed.stderr[-800:]
     # planning is reproduce.py's default, so the plain folder is refused without the key too, and
     # a planning folder is refused to a plain run (the key is compared whichever way it is missing)
-    default = subprocess.run([*cmd, f"out={out}"], capture_output=True, text=True, timeout=120, cwd=root, env=env)
+    default = run_cli(*cmd, f"out={out}")
     assert default.returncode == 2 and "planning: folder False vs now True" in default.stderr, default.stderr[-800:]
     (out / "manifest.json").write_text(json.dumps({**plain, "planning": True}))
-    plain_run = subprocess.run([*cmd, "planning=false", f"out={out}"], capture_output=True, text=True, timeout=120,
-                               cwd=root, env=env)
+    plain_run = run_cli(*cmd, "planning=false", f"out={out}")
     assert plain_run.returncode == 2 and "planning: folder True vs now False" in plain_run.stderr, \
         plain_run.stderr[-800:]

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from crowdrl_testing.cli import run_cli
 from crowdrl.evaluation.report import read_eval_record
 from crowdrl.training.config import ConfigError, RunConfig
 from crowdrl.training.validation import check_device, validate
@@ -113,7 +114,7 @@ def test_a_refused_resume_leaves_the_folder_byte_for_byte(smoke_runs, tmp_path, 
     else:
         shutil.copyfile(smoke_runs[1] / "checkpoints" / "last.pt", last)  # another run's (seed 1)
     before = folder_hashes(run)
-    proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_cli("train.py", f"resume={run}")
     assert proc.returncode == 2 and "last.pt" in proc.stderr, proc.stderr[-2000:]
     assert all(w in proc.stderr for w in words), proc.stderr[-2000:]
     assert folder_hashes(run) == before
@@ -124,10 +125,9 @@ def test_resume_reads_the_folders_own_config_and_refuses_conflicting_overrides(s
 
     run = tmp_path / "run"
     shutil.copytree(smoke_runs[1], run)
-    proc = subprocess.run([*TRAIN, f"resume={run}", "seed=0"], env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_cli("train.py", f"resume={run}", "seed=0")
     assert proc.returncode == 2 and "refused override(s): seed=0 (the run has seed=1)" in proc.stderr
-    proc = subprocess.run([*TRAIN, f"resume={run}", "seed=1", "preset=smoke"], env=ENV, capture_output=True,
-                          text=True, timeout=300)  # agreeing overrides and no others: the run's own config
+    proc = run_cli("train.py", f"resume={run}", "seed=1", "preset=smoke")  # agreeing overrides: the run's own config
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((run / "status.json").read_text())["state"] == "completed"
 

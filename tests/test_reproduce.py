@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from crowdrl.evaluation.report import eval_file, read_eval_record
+from crowdrl_testing.cli import run_cli  # refusals and reruns that train nothing, in this process
 
 ROOT = Path(__file__).resolve().parents[1]
 EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
@@ -99,14 +100,14 @@ def test_retable_rebuilds_a_table_with_a_ceiling_row_with_the_committed_ceilings
 def test_reproduce_rerun_trains_nothing_and_refuses_other_settings(reproduced):
     stamp = (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns
     wall_s = json.loads((reproduced / "table.json").read_text())["wall_s"]
-    proc = run([*REPRODUCE, *TINY, f"out={reproduced}"])
+    proc = run_cli("reproduce.py", *TINY, f"out={reproduced}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "0 run(s) to train or finish, 4 already done" in proc.stdout
     # the table keeps the wall-clock of the call that trained, not the re-tabling call's (or none)
     assert wall_s > 0 and json.loads((reproduced / "table.json").read_text())["wall_s"] == wall_s
     assert f"{wall_s / 60:.1f} min." in (reproduced / "table.md").read_text()
     assert (reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt").stat().st_mtime_ns == stamp
-    other = run([*REPRODUCE, *TINY[1:], "budget=demo", f"out={reproduced}"])
+    other = run_cli("reproduce.py", *TINY[1:], "budget=demo", f"out={reproduced}")
     assert other.returncode == 2 and "budget" in other.stderr and "fresh out=" in other.stderr
 
 
@@ -129,7 +130,7 @@ def test_a_clone_rebuilds_the_table_from_the_committed_records(reproduced, tmp_p
         (clone / f).write_bytes((reproduced / f).read_bytes())
     (clone / "table.json").unlink()
     (clone / "curves.png").unlink()
-    proc = run([*REPRODUCE, *TINY, f"out={clone}"])
+    proc = run_cli("reproduce.py", *TINY, f"out={clone}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "0 run(s) to train or finish, 4 already done" in proc.stdout and "no checkpoint" in proc.stdout
     assert not list(clone.glob("runs/*/checkpoints"))
@@ -180,7 +181,7 @@ def test_reproduce_refuses_a_record_out_of_range_in_one_line(reproduced, tmp_pat
     bad = sorted(clone.glob("runs/*/eval-*/eval.json"))[0]
     bad.write_text(json.dumps(eval_file([{**read_eval_record(bad), "success_rate": 7.5}])))
     table = (clone / "table.md").read_bytes()
-    proc = run([*REPRODUCE, *TINY, f"out={clone}"])
+    proc = run_cli("reproduce.py", *TINY, f"out={clone}")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert f"{bad}: success_rate: must be a number in [0, 1], got 7.5" in proc.stderr, proc.stderr[-2000:]
     assert (clone / "table.md").read_bytes() == table
@@ -242,7 +243,7 @@ def test_evaluate_cli_on_a_checkpoint_equals_its_training_test(reproduced, tmp_p
 
 @pytest.mark.parametrize("args, key", [(["policy=orcx"], "policy"), (["policy=orca", "eval.episodes=0"], "eval.episodes")])
 def test_evaluate_cli_bad_input_names_it(tmp_path, args, key):
-    proc = run([*EVALUATE, *args, f"hydra.run.dir={tmp_path / 'e'}"], timeout=120)
+    proc = run_cli("evaluate.py", *args, f"hydra.run.dir={tmp_path / 'e'}")
     assert proc.returncode in (1, 2) and key in proc.stderr, proc.stderr[-1000:]
     assert not (tmp_path / "e" / "eval.json").exists()
 
@@ -253,12 +254,12 @@ def test_evaluate_cli_rejects_truncated_and_mismatched_checkpoints(reproduced, t
     best = reproduced / "runs" / "egreedy-s0" / "checkpoints" / "best.pt"
     cut = tmp_path / "cut.pt"
     cut.write_bytes(best.read_bytes()[:1000])
-    proc = run([*EVALUATE, f"checkpoint={cut}", f"hydra.run.dir={tmp_path / 'e1'}"], timeout=120)
+    proc = run_cli("evaluate.py", f"checkpoint={cut}", f"hydra.run.dir={tmp_path / 'e1'}")
     assert proc.returncode == 2 and "cut.pt" in proc.stderr and "truncated" in proc.stderr
     data = torch.load(best, weights_only=True)
     data["net"] = {k: v[..., :1] if v.dim() else v for k, v in data["net"].items()}  # wrong shapes
     torch.save(data, tmp_path / "shape.pt")
-    proc = run([*EVALUATE, f"checkpoint={tmp_path / 'shape.pt'}", f"hydra.run.dir={tmp_path / 'e2'}"], timeout=120)
+    proc = run_cli("evaluate.py", f"checkpoint={tmp_path / 'shape.pt'}", f"hydra.run.dir={tmp_path / 'e2'}")
     assert proc.returncode == 2 and "network shape does not match" in proc.stderr
 
 
@@ -382,7 +383,7 @@ def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp
     folder.mkdir()
     write_ceiling(folder / "circle.json", compute_ceiling(crowd_config(run_cfg, scenario="circle"), cases=6,
                                                           widths=(32,), chunk=6))
-    proc = run([*REPRODUCE, *TINY, f"out={out}", f"ceiling={folder}"])
+    proc = run_cli("reproduce.py", *TINY, f"out={out}", f"ceiling={folder}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     for run_dir in [*(out / "runs").glob("*-s*"), out / "orca"]:
         if run_dir.is_dir():
@@ -395,7 +396,7 @@ def test_reproduce_with_a_ceiling_adds_the_gap_and_a_ceiling_row(reproduced, tmp
     assert "avoidable failures" in circle and "| ceiling | 1 |" in circle and "avoidable failures" not in square
     write_ceiling(folder / "circle.json", compute_ceiling(crowd_config(run_cfg, scenario="circle"), cases=5,
                                                           widths=(32,), chunk=5))
-    refused = run([*REPRODUCE, *TINY, f"out={out}", f"ceiling={folder}"])
+    refused = run_cli("reproduce.py", *TINY, f"out={out}", f"ceiling={folder}")
     assert refused.returncode == 2 and "ceiling:" in refused.stderr and "cases 5" in refused.stderr, refused.stderr
 
 

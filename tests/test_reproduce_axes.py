@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from crowdrl_testing.cli import run_cli  # refusals, in this process
+
 ROOT = Path(__file__).resolve().parents[1]
 REPRODUCE = [sys.executable, str(ROOT / "experiments" / "reproduce.py")]
 TINY = ["budget=smoke", "variants=[egreedy,re3]", "seeds=[0,1]", "episodes=6", "reps=200", "jobs=2"]
@@ -24,14 +26,14 @@ def run(cmd: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize("override, key", [("variants=[egreedy,bogus]", "variants"), ("seeds=[-1]", "seeds"),
                                            ("encoders=[sgd3qn,transformer]", "encoders")])
 def test_reproduce_bad_settings_fail_naming_the_key(tmp_path, override, key):
-    proc = run([*REPRODUCE, *TINY, override, f"out={tmp_path / 'r'}"], timeout=120)
+    proc = run_cli("reproduce.py", *TINY, override, f"out={tmp_path / 'r'}")
     assert proc.returncode == 2 and proc.stderr.strip().startswith(f"reproduce.py: {key}"), proc.stderr[-1000:]
     assert not (tmp_path / "r").exists(), "a refused call leaves no out= folder behind"
 
 
 def test_a_refused_reproduce_keeps_an_out_folder_that_existed_before(tmp_path):
     (tmp_path / "r").mkdir()
-    proc = run([*REPRODUCE, *TINY, "seeds=[-1]", f"out={tmp_path / 'r'}"], timeout=120)
+    proc = run_cli("reproduce.py", *TINY, "seeds=[-1]", f"out={tmp_path / 'r'}")
     assert proc.returncode == 2 and proc.stderr.strip().startswith("reproduce.py: seeds"), proc.stderr[-1000:]
     assert (tmp_path / "r").is_dir() and not any((tmp_path / "r").iterdir())
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from crowdrl_testing.cli import run_cli
 from crowdrl.training.config import ConfigError, RunConfig
 
 from crowdrl.training.validation import validate
@@ -33,7 +34,10 @@ def folder_state(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*"))}
 
 
-def train(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
+def train(*args: str, timeout: int = 300, real_process: bool = False) -> subprocess.CompletedProcess:
+    """train.py with ``args``: in this process (a refusal or a finished run's report), or a real one (training)."""
+    if not real_process:
+        return run_cli("train.py", *args)
     return subprocess.run([*TRAIN, *args], env=ENV, capture_output=True, text=True, timeout=timeout)
 
 
@@ -41,7 +45,7 @@ def train(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
 def finished_run(tmp_path_factory) -> Path:
     """A finished smoke run of seed 0 made by train.py (copy it before changing it)."""
     run = tmp_path_factory.mktemp("runs") / "s0"
-    proc = train("preset=smoke", "logger=csv", "logger.render=false", "seed=0", f"hydra.run.dir={run}")
+    proc = train("preset=smoke", "logger=csv", "logger.render=false", "seed=0", f"hydra.run.dir={run}", real_process=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     (run.parent / "output.txt").write_text(proc.stdout + proc.stderr)
     return run
@@ -102,7 +106,7 @@ def test_a_second_run_into_a_locked_folder_is_refused_before_any_write(finished_
     before = folder_state(run)
     holder = lock_run_dir(run)  # what the first, still running, writer holds
     try:
-        proc = train("preset=smoke", "logger=csv", "seed=5", f"hydra.run.dir={run}")
+        proc = train("preset=smoke", "logger=csv", "seed=5", f"hydra.run.dir={run}", real_process=True)  # another process
     finally:
         holder.release()
     assert proc.returncode == 2, proc.stderr[-2000:]
@@ -234,7 +238,7 @@ def test_settings_that_exhaust_memory_are_refused_at_once_naming_the_key(overrid
 
 
 def test_train_py_refuses_a_planner_that_cannot_fit_with_exit_code_2(tmp_path):
-    proc = train("planning.depth=7", f"hydra.run.dir={tmp_path / 'r'}", timeout=120)
+    proc = train("planning.depth=7", f"hydra.run.dir={tmp_path / 'r'}")
     assert proc.returncode == 2 and "planning.depth" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert not (tmp_path / "r").exists()
 
@@ -429,15 +433,11 @@ def test_the_raw_simulator_refuses_non_finite_inputs_naming_them():
 
 # ----------------------------------------------------------------------------- evaluate.py (defect 8)
 
-EVALUATE = [sys.executable, str(ROOT / "experiments" / "evaluate.py")]
-
-
 @pytest.mark.parametrize("args, named", [(["threads=0"], "threads"), (["+eval.episods=5"], "eval.episods"),
                                          (["+encoder=sarl"], "encoder"), (["env=circle", "env.num_humans=20"],
                                                                           "env.num_humans")])
 def test_evaluate_py_refuses_bad_threads_and_unread_keys_naming_them(tmp_path, args, named):
-    proc = subprocess.run([*EVALUATE, "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'e'}"],
-                          env=ENV, capture_output=True, text=True, timeout=120)
+    proc = run_cli("evaluate.py", "policy=orca", "eval.episodes=2", *args, f"hydra.run.dir={tmp_path / 'e'}")
     assert proc.returncode == 2 and named in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "e").exists()  # the folder Hydra made for the refused evaluation is gone
 
@@ -447,8 +447,7 @@ def test_a_refused_evaluation_leaves_a_folder_that_existed_as_it_was(tmp_path):
     mine.mkdir()
     (mine / "notes.txt").write_text("the user's")
     before = {p.relative_to(mine): p.read_bytes() for p in mine.rglob("*") if p.is_file()}
-    proc = subprocess.run([*EVALUATE, "policy=orca", "eval.episodes=2", "threads=0", f"hydra.run.dir={mine}"],
-                          env=ENV, capture_output=True, text=True, timeout=120)
+    proc = run_cli("evaluate.py", "policy=orca", "eval.episodes=2", "threads=0", f"hydra.run.dir={mine}")
     assert proc.returncode == 2 and "threads" in proc.stderr
     assert {p.relative_to(mine): p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]

@@ -17,6 +17,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import DQNLoss
 
 from crowdrl_testing import fresh_network
+from crowdrl_testing.cli import run_cli  # refusals, in this process
 from crowdrl.evaluation.report import read_eval_record
 from crowdrl.models import make_q_actor
 from crowdrl.training import CheckpointError, ConfigError, NStepReturn, load_checkpoint, nstep_transitions, validate
@@ -317,9 +318,8 @@ def test_killed_run_resumes_with_same_counters_and_no_lost_rows(tmp_path):
 
 def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):
     out = tmp_path / "bad"
-    proc = subprocess.run(TRAIN + ["preset=smoke", "encoder.name=transformer", f"hydra.run.dir={out}"],
-                          env=_env(), capture_output=True, text=True, timeout=120)
-    assert proc.returncode != 0
+    proc = run_cli("train.py", "preset=smoke", "encoder.name=transformer", f"hydra.run.dir={out}")
+    assert proc.returncode == 2
     assert "encoder.name" in proc.stderr and "sgd3qn" in proc.stderr
     assert not out.exists()
 
