@@ -187,8 +187,7 @@ def test_a_planning_checkpoint_exports_its_q_policy_alone_with_planning_depth_0_
     folder = make_run_folder(tmp_path / "run", {"planning": {"enabled": True}, "env": {"num_humans": 5}})
     work = tmp_path / "work"
     work.mkdir()
-    proc = subprocess.run([*EXPORT, f"checkpoint={folder}", "out=policy.onnx", "planning_depth=0"], cwd=work, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+    proc = run_cli("export.py", f"checkpoint={folder}", "out=policy.onnx", "planning_depth=0", cwd=work)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "GREEDY Q ONLY: planning_depth=0 drops the online planner" in proc.stdout
     assert f"run it without torch: python {EXAMPLE} " in proc.stdout  # the example's path, wherever crowdrl is

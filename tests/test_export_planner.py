@@ -174,9 +174,7 @@ def test_planning_depth_0_exports_the_greedy_q_policy_loudly(planner_model, tmp_
     folder, _ = planner_model
     work = tmp_path / "work"
     work.mkdir()
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "export.py"), f"checkpoint={folder}",
-                           "out=greedy.onnx", "planning_depth=0"], cwd=work, env=ENV, capture_output=True, text=True,
-                          timeout=300)
+    proc = run_cli("export.py", f"checkpoint={folder}", "out=greedy.onnx", "planning_depth=0", cwd=work)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "NOTE: GREEDY Q ONLY: planning_depth=0 drops the online planner" in proc.stdout
     exported = read_exported(work / "greedy.onnx")
@@ -192,8 +190,7 @@ def test_a_planner_trained_among_obstacles_exports_with_the_edges_and_acts_as_to
     """A planner trained among obstacles reads the observed edges: its model takes them (``world_obstacles``)
     and acts as the torch planner on every step, among the walls and in open space (one masked edge fed)."""
     folder = planning_folder(tmp_path / "run", {"env": {"scenario": scenario, "num_humans": 4}, "planning": planning})
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "export.py"), f"checkpoint={folder}",
-                           f"out={tmp_path / 'p.onnx'}"], env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_cli("export.py", f"checkpoint={folder}", f"out={tmp_path / 'p.onnx'}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     model = read_exported(tmp_path / "p.onnx")
     assert model.plans and model.layout == "world_obstacles" and model.inputs[3:] == ("obstacles", "obstacles_mask")
