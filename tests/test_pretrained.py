@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from crowdrl_testing.cli import run_cli  # refusals, in this process
 from crowdrl.evaluation.report import read_eval_record, read_eval_records
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,9 +49,7 @@ def test_each_agent_loads_with_weights_only_and_matches_its_config_and_record(ag
 
 
 def test_an_unknown_pretrained_name_lists_the_agents_that_exist(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "evaluate.py"), "checkpoint=pretrained/nope",
-                           f"hydra.run.dir={tmp_path / 'eval'}"], cwd=ROOT, capture_output=True, text=True,
-                          env={**os.environ, "WANDB_MODE": "offline"}, timeout=300)
+    proc = run_cli("evaluate.py", "checkpoint=pretrained/nope", f"hydra.run.dir={tmp_path / 'eval'}", cwd=ROOT)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "no pretrained agent 'nope'" in proc.stderr and AGENTS[0].name in proc.stderr
 
