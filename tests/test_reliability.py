@@ -172,7 +172,7 @@ def test_a_folder_that_predates_the_recommended_learner_resumes_as_it_ran_and_te
     (run / "config.yaml").write_text(OmegaConf.to_yaml(config))
     for name in ("summary.json", "eval.json"):  # unfinished: the resume tests it again
         (run / name).unlink()
-    proc = subprocess.run([*TRAIN, f"resume={run}"], env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_cli("train.py", f"resume={run}")  # in this process: the resume only tests
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert read_eval_record(run / "eval.json") == first
     stored = load_checkpoint(run / "checkpoints" / "last.pt")["config"]["train"]
