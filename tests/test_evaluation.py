@@ -156,14 +156,11 @@ def test_demo_script_trains_tests_and_compares_with_orca(tmp_path):
 
 
 def test_demo_takes_its_folder_as_one_out_key_like_the_other_commands(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "experiments" / "demo.py"
+    from crowdrl_testing.cli import run_cli
+
     for args in (["out="], [f"out={tmp_path / 'a'}", f"out={tmp_path / 'b'}"]):
-        proc = subprocess.run([sys.executable, str(script), *args, "preset=smoke"], capture_output=True, text=True,
-                              timeout=120)
+        proc = run_cli("demo.py", *args, "preset=smoke")  # refusals, in this process
         assert proc.returncode == 2 and "out: give one run folder" in proc.stderr, proc.stderr[-2000:]
     assert not any(tmp_path.iterdir())
 

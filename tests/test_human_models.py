@@ -3,9 +3,7 @@
 
 import json
 import math
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,11 +22,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _agreement(*args: str) -> dict:
-    cmd = [sys.executable, str(ROOT / "experiments" / "human_model_agreement.py"), *args, "--json"]
-    env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT / 'experiments'}"}
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads(proc.stdout)
+    """``experiments/human_model_agreement.py <args> --json``'s output (its ``main``, in this process)."""
+    import contextlib
+    import io
+
+    import human_model_agreement
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        human_model_agreement.main([*args, "--json"])
+    return json.loads(out.getvalue())
 
 
 @pytest.mark.parametrize("args", [("--model", "orca", "--robot-visible", "--seed", "11"),
