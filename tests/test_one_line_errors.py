@@ -16,18 +16,16 @@ from pathlib import Path
 import pytest
 
 from crowdrl.evaluation.report import read_eval_record
+from crowdrl_testing.cli import run_cli as run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_cli(monkeypatch, capsys, module: str, *args: str) -> tuple[int, str]:
-    """(exit status, stderr) of ``crowdrl.cli.<module>`` run in this process with ``args``."""
-    main = importlib.import_module(f"crowdrl.cli.{module}").main
-    monkeypatch.setattr(sys, "argv", [f"{module}.py", *args])
-    with pytest.raises(SystemExit) as stop:
-        main(list(args)) if module == "demo" else main()
-    err = capsys.readouterr().err
-    return stop.value.code, err
+def run_cli(module: str, *args: str) -> tuple[int, str]:
+    """(exit status, stderr) of ``crowdrl.cli.<module>`` run in this process with ``args``
+    (:func:`crowdrl_testing.cli.run_cli`)."""
+    proc = run_command(f"{module}.py", *args)
+    return proc.returncode, proc.stderr
 
 
 def one_line(err: str) -> str:
@@ -63,7 +61,7 @@ def scratch(tmp_path, monkeypatch):
     ("demo", ["train.num_envs=abc"], ["demo.py: train.num_envs:", "could not be converted to Integer"]),
 ])
 def test_hydra_and_config_errors_are_one_line_exit_2_naming_the_key(monkeypatch, capsys, scratch, module, args, words):
-    code, err = run_cli(monkeypatch, capsys, module, *args, "hydra.run.dir=out" if module != "demo" else "out=out")
+    code, err = run_cli(module, *args, "hydra.run.dir=out" if module != "demo" else "out=out")
     line = one_line(err)
     assert code == 2 and all(w in line for w in words), line
     assert not (scratch / "out").exists() and "HYDRA_FULL_ERROR" not in os.environ
@@ -117,7 +115,7 @@ def test_typed_schemas_refuse_unknown_keys_and_wrong_types_naming_them_and_write
     first = {"evaluate": ["policy=orca", "eval.episodes=2"], "export": ["checkpoint=runs/x", "out=p.onnx"],
              "reproduce": ["budget=smoke", "variants=[egreedy]", "seeds=[0]", "episodes=2"]}[module]
     where = {"evaluate": "hydra.run.dir=out", "export": "hydra.run.dir=.", "reproduce": "out=out"}[module]
-    code, err = run_cli(monkeypatch, capsys, module, *first, *args, where)
+    code, err = run_cli(module, *first, *args, where)
     line = one_line(err)
     assert code == 2 and all(w in line for w in words), line
     assert list(scratch.iterdir()) == []  # no run or out folder, no .hydra, no log, no p.onnx
@@ -138,7 +136,7 @@ def test_a_full_or_read_only_disk_during_training_is_one_line_naming_the_file(mo
         raise OSError(code, os.strerror(code), str(Path(run_dir) / "checkpoints" / "last.pt"))
 
     monkeypatch.setattr(training, "run_training", full)
-    status, err = run_cli(monkeypatch, capsys, "train", "preset=smoke", "logger=csv", "hydra.run.dir=run")
+    status, err = run_cli("train", "preset=smoke", "logger=csv", "hydra.run.dir=run")
     line = one_line(err)
     assert status == 2 and f"({errno.errorcode[code]})" in line and "last.pt" in line, line
     assert f"resume={scratch / 'run'}" in line, line
@@ -165,7 +163,7 @@ def test_a_failed_or_stopped_evaluation_is_one_line_and_leaves_no_folder(monkeyp
         raise OSError(getattr(errno, fault), os.strerror(getattr(errno, fault)), str(Path(folder) / "eval.json"))
 
     monkeypatch.setattr(report, "write_records", write_records)
-    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+    code, err = run_cli("evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
                         "hydra.run.dir=runs/eval-x")
     line = one_line(err)
     stopped = fault in ("stopped", "SIGTERM")
@@ -176,7 +174,7 @@ def test_a_failed_or_stopped_evaluation_is_one_line_and_leaves_no_folder(monkeyp
 
 
 def test_evaluate_refuses_episodes_beyond_memory_naming_the_key(monkeypatch, capsys, scratch):
-    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=1000000000",
+    code, err = run_cli("evaluate", "policy=orca", "eval.episodes=1000000000",
                         "hydra.run.dir=runs/eval-x")
     line = one_line(err)
     assert code == 2 and "eval.episodes: 1000000000 episodes keep" in line and "memory available" in line, line
@@ -219,7 +217,6 @@ def test_the_wandb_mode_follows_logger_mode_and_the_environment_wins_when_set(mo
                                                                               logger_mode, expected):
     """The mode WandbMirror hands to wandb (through TorchRL's WandbLogger, stubbed here): logger.mode, or
     WANDB_MODE when set; importing a command line no longer sets WANDB_MODE behind the user's back."""
-    import importlib
 
     import torchrl.record.loggers.wandb as torchrl_wandb
 
@@ -254,7 +251,7 @@ def test_reproduce_refuses_an_out_folder_it_did_not_make(monkeypatch, capsys, sc
     mine = scratch / "mine"
     mine.mkdir()
     (mine / "table.md").write_text("my table")
-    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, f"out={mine}")
+    code, err = run_cli("reproduce", *REPRODUCE_TINY, f"out={mine}")
     line = one_line(err)
     assert code == 2 and line.startswith(f"reproduce.py: out: {mine} holds files (table.md)"), line
     assert "no reproduce.py folder (no manifest.json)" in line, line
@@ -263,7 +260,7 @@ def test_reproduce_refuses_an_out_folder_it_did_not_make(monkeypatch, capsys, sc
 
 def test_reproduce_refuses_an_empty_out_and_writes_nothing(monkeypatch, capsys, scratch):
     """D4b: `out=` (empty: `out=$DIR` with DIR unset) would have made the current directory the results folder."""
-    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, "out=")
+    code, err = run_cli("reproduce", *REPRODUCE_TINY, "out=")
     line = one_line(err)
     assert code == 2 and line.startswith("reproduce.py: out: is empty"), line
     assert list(scratch.iterdir()) == []
@@ -275,7 +272,7 @@ def test_reproduce_refuses_a_manifest_that_is_no_json_object_in_one_line(monkeyp
     out = scratch / "out"
     out.mkdir()
     (out / "manifest.json").write_text(manifest)
-    code, err = run_cli(monkeypatch, capsys, "reproduce", *REPRODUCE_TINY, f"out={out}")
+    code, err = run_cli("reproduce", *REPRODUCE_TINY, f"out={out}")
     line = one_line(err)
     assert code == 2 and line.startswith(f"reproduce.py: out: {out / 'manifest.json'}: {words}"), line
     assert (out / "manifest.json").read_text() == manifest
@@ -292,7 +289,7 @@ def test_a_file_where_the_run_folder_should_be_is_one_line_naming_it(monkeypatch
     """D7: `hydra.run.dir=` (or reproduce.py's `out=`) an existing file, or below one: Hydra cannot make the
     folder; one line naming the path, exit 2, the file as it was."""
     (scratch / "f").write_text("mine")
-    code, err = run_cli(monkeypatch, capsys, module, *args)
+    code, err = run_cli(module, *args)
     line = one_line(err)
     assert code == 2 and line.startswith(f"{module}.py: {where}, not a folder; give a new or empty folder"), line
     assert [p.name for p in scratch.iterdir()] == ["f"] and (scratch / "f").read_text() == "mine"
@@ -304,7 +301,7 @@ def test_a_refused_sweep_leaves_no_sweep_folder(monkeypatch, capsys, scratch, sw
     """D14: `train.py -m ... seed=abc,0`: Hydra writes the sweep folder's multirun.yaml before it composes the
     jobs; refused (by Hydra, or by train.py's checks in the first job) before any job wrote anything, the sweep
     leaves nothing behind."""
-    code, err = run_cli(monkeypatch, capsys, "train", "-m", "preset=smoke", "logger=csv", sweep)
+    code, err = run_cli("train", "-m", "preset=smoke", "logger=csv", sweep)
     line = one_line(err)  # Hydra's "Launching 2 jobs locally" goes to stdout
     assert code == 2 and all(w in line for w in words), line
     assert list(scratch.iterdir()) == []
@@ -320,7 +317,7 @@ def test_evaluate_refuses_a_folder_that_holds_records_and_writes_into_a_new_or_e
     run.mkdir()
     (run / "status.json").write_text('{"state": "completed"}')
     (run / "eval.json").write_text('{"episodes": 1000}')
-    code, err = run_cli(monkeypatch, capsys, "evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
+    code, err = run_cli("evaluate", "policy=orca", "eval.episodes=2", "eval.record_episode=null",
                         f"hydra.run.dir={run}")
     line = one_line(err)
     assert code == 2 and line.startswith(f"evaluate.py: hydra.run.dir: {run} holds files (eval.json, status.json); "), line
