@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import importlib.util
-import io
 import json
 import subprocess
 import sys
@@ -13,24 +10,15 @@ from pathlib import Path
 import pytest
 
 from crowdrl.evaluation.report import read_eval_record
+from crowdrl_testing.cli import run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "experiments" / "compare_runs.py"
 
 
 def _in_process(argv: list[str]) -> subprocess.CompletedProcess:
-    """``compare_runs.py`` with ``argv``, run in this process (its ``main``; no interpreter start-up per call):
-    the exit status, standard output and standard error of the command."""
-    spec = importlib.util.spec_from_file_location("compare_runs_cli", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = module.main(argv)
-        except SystemExit as exc:
-            code = exc.code
-    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
+    """``compare_runs.py`` with ``argv``, run in this process (:func:`crowdrl_testing.cli.run_cli`)."""
+    return run_cli("compare_runs.py", *argv)
 
 
 def _run_folder(path: Path, successes: list[float], timeouts: list[float]) -> Path:

@@ -302,14 +302,12 @@ def test_eval_num_humans_out_of_range_is_named(range_run):
 
 def test_crowd_sizes_script_writes_the_generalisation_table(range_run, tmp_path):
     import json
-    import subprocess
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    cmd = [sys.executable, str(root / "experiments" / "crowd_sizes.py"), "--out", str(tmp_path), "--sizes", "1", "3",
-           "--episodes", "4", "--group", f"1-4 humans={range_run}", "--json"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    from crowdrl_testing.cli import run_cli
+
+    cmd = ["crowd_sizes.py", "--out", str(tmp_path), "--sizes", "1", "3", "--episodes", "4",
+           "--group", f"1-4 humans={range_run}", "--json"]
+    done = run_cli(*cmd)  # in this process
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert list(result["table"]) == ["1-4 humans", "ORCA"] and result["sizes"] == [1, 3]
@@ -319,7 +317,7 @@ def test_crowd_sizes_script_writes_the_generalisation_table(range_run, tmp_path)
     assert sorted(r["num_humans"] for r in orca3) == [1, 3]
     md = (tmp_path / "table.md").read_text()
     assert "| 1-4 humans | 1 |" in md and "| ORCA | 1 |" in md
-    bad = subprocess.run([*cmd[:-1], "--group", "x=/nonexistent"], capture_output=True, text=True, timeout=300)
+    bad = run_cli(*cmd[:-1], "--group", "x=/nonexistent")
     assert bad.returncode != 0 and "/nonexistent does not exist" in bad.stderr
 
 

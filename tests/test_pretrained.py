@@ -86,8 +86,7 @@ def test_check_pretrained_tells_an_identical_record_from_a_moved_one():
 
 
 def test_check_pretrained_refuses_an_unknown_agent_listing_the_ones_that_exist():
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "check_pretrained.py"), "--agents", "nope"],
-                          capture_output=True, text=True, timeout=120)
+    proc = run_cli("check_pretrained.py", "--agents", "nope")
     assert proc.returncode == 2 and "--agents: no pretrained agent 'nope'" in proc.stderr and AGENTS[0].name in proc.stderr
 
 

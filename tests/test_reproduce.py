@@ -1,4 +1,5 @@
-"""experiments/evaluate.py and experiments/reproduce.py end to end (as subprocesses), the results
+"""experiments/evaluate.py and experiments/reproduce.py end to end (training in subprocesses; refusals, re-tabling
+and compare_runs.py in this process), the results
 statistics and figures, and the SLURM launcher config composing with a sweep."""
 
 from __future__ import annotations
@@ -326,11 +327,11 @@ def test_ema_weights_each_point_by_its_episodes():
 def test_compare_runs_agrees_with_the_reproduce_table(reproduced, tmp_path):
     """experiments/compare_runs.py on the same run folders gives reproduce.py's means and
     probability of improvement (ε-greedy first), and refuses a folder without test results."""
-    compare = [sys.executable, str(ROOT / "experiments" / "compare_runs.py"), "--out", str(tmp_path), "--reps", "200"]
+    compare = ["compare_runs.py", "--out", str(tmp_path), "--reps", "200"]  # in this process
     runs = reproduced / "runs"
     groups = ["--group", f"egreedy={runs / 'egreedy-s0'},{runs / 'egreedy-s1'}",
               "--group", f"re3={runs / 're3-s0'},{runs / 're3-s1'}"]
-    proc = run([*compare, *groups, "--json"])
+    proc = run_cli(*compare, *groups, "--json")
     assert proc.returncode == 0, proc.stderr[-2000:]
     ours = {(r["group"], r["scenario"]): r for r in json.loads(proc.stdout)["rows"]}
     theirs = {(r["method"], r["scenario"]): r for r in json.loads((reproduced / "table.json").read_text())["rows"]}
@@ -340,9 +341,9 @@ def test_compare_runs_agrees_with_the_reproduce_table(reproduced, tmp_path):
             assert row[metric] == pytest.approx(theirs[key][metric]), (key, metric)
     assert ours[("re3", "circle")]["p_improve"] == pytest.approx(theirs[("re3", "circle")]["p_improve"])
     assert "p_improve" not in ours[("egreedy", "circle")] and (tmp_path / "table.md").exists()
-    bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}"])
+    bad = run_cli(*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}")
     assert bad.returncode == 2 and "no test record on a scenario in common" in bad.stderr
-    bad = run([*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}", "--scenarios", "circle"])
+    bad = run_cli(*compare, "--group", f"a={runs / 'egreedy-s0'}", "--group", f"b={tmp_path}", "--scenarios", "circle")
     assert bad.returncode == 2 and "circle" in bad.stderr and "Traceback" not in bad.stderr
 
 

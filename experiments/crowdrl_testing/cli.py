@@ -11,12 +11,16 @@ Example::
 
     proc = run_cli("export.py", "checkpoint=nope.pt", cwd=tmp_path)
     assert proc.returncode == 2 and "checkpoint: no checkpoint at" in proc.stderr
+
+Any other script of ``experiments/`` with a ``main(argv=None)`` runs the same way (``run_cli("compare_runs.py",
+"--group", ...)``); an ``int`` it returns is its exit status, as ``sys.exit(main())`` makes it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import io
 import logging
 import os
@@ -50,14 +54,19 @@ def _logging_restored() -> Iterator[None]:
 
 
 def run_cli(script: str, *args: str, cwd: Path | str | None = None) -> subprocess.CompletedProcess:
-    """Run ``experiments/<script>`` (one of :data:`COMMANDS`) with ``args`` in this process from ``cwd``; its exit
-    status (0 when ``main`` returns), stdout and stderr, as :func:`subprocess.run` with ``capture_output`` and
-    ``text`` gives them."""
+    """Run ``experiments/<script>`` with ``args`` in this process from ``cwd``: one of :data:`COMMANDS` (exit status 0
+    when its ``main`` returns) or another script's ``main`` (the ``int`` it returns is its exit status); the status,
+    stdout and stderr, as :func:`subprocess.run` with ``capture_output`` and ``text`` gives them."""
     from hydra.core.global_hydra import GlobalHydra
 
-    if script not in COMMANDS:
-        raise ValueError(f"script: {script!r} is not a command line; known: {', '.join(COMMANDS)}")
-    command = importlib.import_module(COMMANDS[script])
+    if script in COMMANDS:
+        command = importlib.import_module(COMMANDS[script])
+    elif (EXPERIMENTS / script).is_file() and script.endswith(".py"):
+        spec = importlib.util.spec_from_file_location(f"{script[:-3]}_cli", EXPERIMENTS / script)
+        command = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(command)
+    else:
+        raise ValueError(f"script: no experiments/{script}")
     argv = [str(EXPERIMENTS / script), *args]
     out, err = io.StringIO(), io.StringIO()
     saved_argv, saved_env = sys.argv, dict(os.environ)
@@ -67,7 +76,9 @@ def run_cli(script: str, *args: str, cwd: Path | str | None = None) -> subproces
         with (_logging_restored(), contextlib.chdir(cwd or os.getcwd()), contextlib.redirect_stdout(out),
               contextlib.redirect_stderr(err)):
             try:
-                command.main()
+                returned = command.main()
+                if script not in COMMANDS and isinstance(returned, int):
+                    code = returned
             except SystemExit as exc:
                 code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
                 if not isinstance(exc.code, (int, type(None))):
