@@ -1,9 +1,7 @@
 """``experiments/bench_env.py --compare-obstacles`` runs on a tiny budget and reports consistent figures."""
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,12 +9,17 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _bench(*args: str) -> subprocess.CompletedProcess:
+    """``bench_env.py <args>`` in this process (:func:`crowdrl_testing.cli.run_cli`)."""
+    from crowdrl_testing.cli import run_cli
+
+    return run_cli("bench_env.py", *args)
+
+
 def test_compare_obstacles_reports_both_scenarios_and_their_ratios():
     pytest.importorskip("pyrvo")
-    cmd = [sys.executable, str(ROOT / "experiments" / "bench_env.py"), "--compare-obstacles", "--batch-sizes", "4",
-           "--steps", "2", "--warmup", "1", "--ref-steps", "20", "--no-memory", "--json"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "RL_LOGGING_LEVEL": "WARNING"}
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    proc = _bench("--compare-obstacles", "--batch-sizes", "4", "--steps", "2", "--warmup", "1", "--ref-steps", "20",
+                  "--no-memory", "--json")
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     assert out["meta"]["compare_obstacles"] == "doorway"
@@ -29,12 +32,6 @@ def test_compare_obstacles_reports_both_scenarios_and_their_ratios():
     assert doorway["speedup_vs_ref"] == pytest.approx(doorway["core_sps"] / doorway["ref_sps"])
     assert 0 < doorway["ref_waypoint_share"] < 1 and "core_vs_circle" not in circle
     assert set(out["reference"]) == {"circle N=10", "doorway N=10"}
-
-
-def _bench(*args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "RL_LOGGING_LEVEL": "WARNING"}
-    return subprocess.run([sys.executable, str(ROOT / "experiments" / "bench_env.py"), *args], env=env,
-                          capture_output=True, text=True, timeout=300)
 
 
 def test_compare_humans_takes_the_median_of_rounds_and_its_ratio_to_orca():
