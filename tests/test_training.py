@@ -326,12 +326,8 @@ def test_bad_config_exits_with_a_message_and_leaves_no_run_folder(tmp_path):
 
 def test_bench_train_reports_rates_and_ratios():
     """`experiments/bench_train.py` runs on a tiny budget and reports consistent figures (its --json)."""
-    cmd = [sys.executable, str(ROOT / "experiments" / "bench_train.py"), "--updates", "2", "--batches", "1",
-           "--num-envs", "4", "--warmup-frames", "128", "--loss", "eager", "--lidar", "off", "conv", "--lidar-rays", "24",
-           "--json"]
-    # torchrl logs INFO lines to stdout: keep it to the JSON document
-    proc = subprocess.run(cmd, env={**_env(), "RL_LOGGING_LEVEL": "WARNING"}, capture_output=True, text=True,
-                          timeout=300)
+    proc = run_cli("bench_train.py", "--updates", "2", "--batches", "1", "--num-envs", "4", "--warmup-frames", "128",
+                   "--loss", "eager", "--lidar", "off", "conv", "--lidar-rays", "24", "--json")  # in this process
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     assert out["meta"]["num_envs"] == 4
