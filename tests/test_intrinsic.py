@@ -78,6 +78,29 @@ def test_re3_knn_distance_is_the_kth_neighbour_distance():
     assert torch.equal(re3.knn_distance(td), torch.tensor([3.0, 2.0, 3.0, 6.0]))
 
 
+def test_re3_distances_match_the_exact_pairwise_distances_and_duplicates_are_at_zero():
+    # a counterfactual-sized batch (500 rows of 128-d embeddings) sampled with replacement, and a near pair
+    from crowdrl.exploration.re3 import pairwise_distances
+
+    g = torch.Generator().manual_seed(0)
+    for scale in (0.01, 1.0, 100.0):
+        e = scale * torch.randn(500, 128, generator=g)
+        e = e[torch.randint(0, 500, (500,), generator=g)]
+        e[3] = e[4] + 1e-3 * scale
+        same = (e.unsqueeze(1) == e.unsqueeze(0)).all(-1)
+        assert int(same.sum()) > 500  # duplicates beyond the diagonal
+        exact = torch.cdist(e, e, compute_mode="donot_use_mm_for_euclid_dist")
+        d = pairwise_distances(e)
+        assert torch.equal(d[same], torch.zeros(int(same.sum())))
+        torch.testing.assert_close(d, exact, rtol=2e-6, atol=0.0)
+    # the k-th neighbour is kthvalue's on the same distances (the k smallest of each row, the last)
+    re3 = make_re3(k=3)
+    td = transitions(64)
+    e = re3.embed(re3.obs(td, next_=True))
+    ref = torch.cdist(e, e, compute_mode="donot_use_mm_for_euclid_dist").fill_diagonal_(float("inf"))
+    torch.testing.assert_close(re3.knn_distance(td), ref.kthvalue(3, dim=1).values, rtol=2e-6, atol=0.0)
+
+
 def test_re3_running_std_normalises_and_encoder_stays_frozen():
     re3 = make_re3()
     assert not any(p.requires_grad for p in re3.parameters())
