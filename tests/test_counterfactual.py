@@ -219,6 +219,25 @@ def test_counterfactual_update_equals_the_row_by_row_loss_and_gradients(mode, co
         torch.testing.assert_close(grads[k], p.grad, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("compile_acting", [False, True])
+def test_the_top_k_forward_is_compiled_with_the_acting_network(compile_acting):
+    """With ``train.compile_acting`` the alternatives are ranked by the network through ``torch.compile`` (its own
+    parameters; compiled outputs equal eager's: test_training's compiled-acting test), else by the network itself.
+    Nothing is compiled here."""
+    from crowdrl.compile import CompiledModule
+    from crowdrl.training.facts import RunFacts
+    from crowdrl.training.factories import make_update_part
+
+    run = validate({"train": {"compile_acting": compile_acting, "counterfactual": {"mode": "second_update"}}},
+                   resources=False)
+    net = make_q_network(run.encoder.name)
+    part = make_update_part(run.train, net, RunFacts.of(run))
+    if compile_acting:
+        assert isinstance(part.q, CompiledModule) and part.q.module is net
+    else:
+        assert part.q is net
+
+
 def test_config_keys_are_checked_naming_the_key():
     for key, value, words in (("mode", "sometimes", "train.counterfactual.mode"),
                               ("actions", "best", "train.counterfactual.actions"),

@@ -149,7 +149,8 @@ class TrainConfig:
     # every validation also keeps its network as checkpoints/val-<frames>.pt, with the run's timers then
     # (experiments/time_to_quality.py tests them in order); off: best.pt and last.pt only
     keep_val_checkpoints: bool = False
-    # the acting Q network (collection, planning, validation, test) through torch.compile; off here and
+    # the acting Q network (collection, planning, validation, test; and the counterfactual top-k's ranking) through
+    # torch.compile; off here and
     # in conf/ (speed only); make demo and the paper/episodes presets turn it on (bench_train.py --acting)
     compile_acting: bool = False
     # the D3QN update (target, forwards, backward), and the planner's predictor update, each as one

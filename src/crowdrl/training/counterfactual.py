@@ -36,6 +36,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
+from crowdrl.compile import CompiledModule
 from crowdrl.envs.robot_centric import RobotCentric
 from crowdrl.sim.config import CrowdConfig
 from crowdrl.sim.kinematics import NUM_ACTIONS, action_table, wrap_angle
@@ -70,6 +71,9 @@ class CounterfactualExperience(UpdatePart):
             counterfactual transitions hold their next observation there too, for the bonus to read.
         obstacle_tokens: the edges the robot observes from a new pose (``None``: ``config``'s; a scenario mix's
             largest, :func:`~crowdrl.training.config.map_extent`).
+        compile: ``topk``'s forward pass through ``torch.compile`` (:class:`~crowdrl.compile.CompiledModule`, the
+            network's own parameters; ``train.compile_acting``, as the other forward passes without gradient):
+            Q equal to eager's to float rounding.
 
     Example::
 
@@ -81,7 +85,7 @@ class CounterfactualExperience(UpdatePart):
     def __init__(self, config: CrowdConfig, net: nn.Module, obs_keys: Sequence[str], *, mode: str = "second_update",
                  actions: str = "topk", k: int = 5, weight: float = 0.5, entities: bool = False, seed: int = 0,
                  reward_bonus: Callable[[TensorDictBase], TensorDictBase] | None = None,
-                 one_step_key: str | None = None, obstacle_tokens: int | None = None) -> None:
+                 one_step_key: str | None = None, obstacle_tokens: int | None = None, compile: bool = False) -> None:
         if mode not in MODES:
             raise ValueError(f"mode: got {mode!r}; allowed: {', '.join(MODES)}")
         if actions not in ACTIONS:
@@ -97,6 +101,8 @@ class CounterfactualExperience(UpdatePart):
             raise ValueError("counterfactual experience replays the humans' real next state, exact only while they "
                              "ignore the robot; with this config's visible robot they react to it")
         self.config, self.net, self.obs_keys = config, net, list(obs_keys)
+        # the Q values that rank the alternatives: ~3x faster compiled than eager at a batch of 100 (1 thread)
+        self.q = CompiledModule(net, what="the counterfactual top-k") if compile else net
         self.mode, self.actions, self.weight = mode, actions, float(weight)
         self.k = NUM_ACTIONS if actions == "all" else int(k)
         self.reward_bonus, self.one_step_key = reward_bonus, one_step_key
@@ -146,7 +152,7 @@ class CounterfactualExperience(UpdatePart):
             return torch.arange(NUM_ACTIONS, device=device).expand(B, NUM_ACTIONS)
         if self.actions == "random":  # k distinct actions: the first k of a random permutation
             return torch.rand(B, NUM_ACTIONS, generator=self.generator).argsort(-1)[:, :self.k].to(device)
-        q = self.net(*(sample.get(key) for key in self.obs_keys))
+        q = self.q(*(sample.get(key) for key in self.obs_keys))
         return q.topk(self.k, dim=-1).indices
 
     @torch.no_grad()

@@ -117,7 +117,7 @@ def make_update_part(train: TrainConfig, net: torch.nn.Module, facts: RunFacts,
     return CounterfactualExperience(facts.crowd, net, facts.obs_keys, mode=c.mode, actions=c.actions, k=c.k,
                                     weight=c.weight, entities=facts.entities, seed=3_000_017 * (facts.seed + 1),
                                     reward_bonus=reward_bonus, one_step_key=one_step_key,
-                                    obstacle_tokens=facts.obstacle_tokens)
+                                    obstacle_tokens=facts.obstacle_tokens, compile=train.compile_acting)
 
 
 def make_learner(train: TrainConfig, net: torch.nn.Module, facts: RunFacts, strategy: ExplorationStrategy,
