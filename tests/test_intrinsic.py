@@ -93,6 +93,8 @@ def test_re3_distances_match_the_exact_pairwise_distances_and_duplicates_are_at_
         d = pairwise_distances(e)
         assert torch.equal(d[same], torch.zeros(int(same.sum())))
         torch.testing.assert_close(d, exact, rtol=2e-6, atol=0.0)
+    # a degenerate batch, every row the same state: all at 0 (the pairs are then not recomputed one by one)
+    assert torch.equal(pairwise_distances(torch.ones(300, 128)), torch.zeros(300, 300))
     # the k-th neighbour is kthvalue's on the same distances (the k smallest of each row, the last)
     re3 = make_re3(k=3)
     td = transitions(64)

@@ -64,6 +64,8 @@ def pairwise_distances(e: Tensor) -> Tensor:
     # where the two terms nearly cancel (pairs within ~1e-3 of their norms: duplicates, the diagonal), the
     # Gram form keeps few digits: those few pairs are recomputed from their difference
     i, j = (d2 <= NEAR_PAIR * scale).nonzero(as_tuple=True)
+    if i.numel() > 4 * e.shape[0]:  # a batch of many (near-)duplicates: the difference-based distances of all pairs
+        return torch.cdist(e, e, compute_mode="donot_use_mm_for_euclid_dist")
     d2[i, j] = (x[i] - x[j]).square().sum(-1)
     return d2.clamp_min_(0.0).sqrt_().to(e.dtype)
 
