@@ -12,7 +12,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose
 
-from crowdrl.exploration import ICM, RE3, IntrinsicBonus, IntrinsicRewardTransform, RunningMeanStd
+from crowdrl.exploration import ICM, RE3, RND, IntrinsicBonus, IntrinsicRewardTransform, RunningMeanStd
 
 OBS_DIM, NUM_ACTIONS = 4, 3
 
@@ -42,6 +42,10 @@ def make_icm(**kw) -> ICM:
 
 def make_re3(**kw) -> RE3:
     return RE3(mlp_encoder(), feature_dim=32, seed=1, **kw)
+
+
+def make_rnd() -> RND:
+    return RND(mlp_encoder(0), mlp_encoder(1), feature_dim=32, seed=1)
 
 
 # ----------------------------------------------------------------------------- RE3
@@ -387,3 +391,56 @@ def test_custom_bonus_and_reward_keys():
     out = t(td.clone())
     assert torch.equal(out["next", "r"], td["next", "r"] + 1.0)
     assert torch.equal(out["r_ext"], td["next", "r"]) and (out["r_int"] == 2.0).all()
+
+
+# ----------------------------------------------------------------------------- grouped batches (counterfactual)
+def grouped_transitions(n: int = 12, g: int = 5, seed: int = 3) -> TensorDict:
+    """``g`` transitions from each of ``n`` states: ``s`` equal along dim 1, each successor and action its own."""
+    flat = transitions(n * g, seed=seed)
+    td = flat.reshape(n, g)
+    td["observation"] = td["observation"][:, :1].expand(n, g, OBS_DIM).clone()
+    td["steps_to_next_obs"] = torch.ones(n, g, 1, dtype=torch.int64)
+    td["next", "terminated"] = torch.rand(n, g, 1, generator=torch.Generator().manual_seed(seed)) < 0.2
+    return td
+
+
+@pytest.mark.parametrize("bonus_factory", [make_icm, make_re3, make_rnd], ids=["icm", "re3", "rnd"])
+def test_a_grouped_batch_gets_the_bonus_of_its_transitions_laid_out_flat(bonus_factory):
+    """``add_bonus(grouped=True)`` on ``[n, g]`` (what counterfactual experience passes) gives the rewards and the
+    options' statistics of the same ``n·g`` transitions one per row, every option on."""
+    from crowdrl.exploration.normalize import ObservationNormalizer, RewardNormalizer
+
+    def transform():
+        return IntrinsicRewardTransform(bonus_factory(), beta=0.3, update_bonus=False, obs_norm=ObservationNormalizer(),
+                                        reward_norm=RewardNormalizer(scale="std", center=True, clip=5.0),
+                                        terminal_value_gamma=0.9)
+
+    grouped_t, flat_t = transform(), transform()
+    for seed in (3, 4):  # the second batch reads statistics the first one moved
+        td = grouped_transitions(seed=seed)
+        a = grouped_t.add_bonus(td.clone(), learn=False, record=False, grouped=True)
+        b = flat_t.add_bonus(td.reshape(-1).clone(), learn=False, record=False)
+        for key in (("next", "reward"), ("next", "reward_int")):
+            torch.testing.assert_close(a.get(key), b.get(key).reshape(a.get(key).shape), rtol=1e-5, atol=1e-6)
+    for (ka, va), (kb, vb) in zip(grouped_t.state_dict().items(), flat_t.state_dict().items()):
+        assert ka == kb
+        torch.testing.assert_close(va, vb, rtol=1e-5, atol=1e-6)
+
+
+def test_icm_reads_each_state_of_a_grouped_batch_once():
+    icm = make_icm()
+    rows = []
+    features = icm.features
+    icm.features = lambda obs: rows.append(obs[0].shape[0]) or features(obs)
+    td = grouped_transitions(n=12, g=5)
+    grouped = icm.grouped_bonus(td)
+    assert rows == [12 + 60] and grouped.shape == (12, 5)
+    torch.testing.assert_close(grouped, icm.bonus(td.reshape(-1)).reshape(12, 5), rtol=1e-5, atol=1e-7)
+
+
+def test_a_grouped_bonus_is_refused_with_learning_or_a_flat_batch():
+    t = IntrinsicRewardTransform(make_icm(), beta=0.1)
+    with pytest.raises(ValueError, match=r"grouped=True.*\[n, g\].*learn=False"):
+        t.add_bonus(grouped_transitions(), grouped=True)
+    with pytest.raises(ValueError, match=r"grouped=True.*\[n, g\]"):
+        t.add_bonus(transitions(8), learn=False, grouped=True)

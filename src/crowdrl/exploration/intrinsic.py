@@ -100,6 +100,13 @@ class IntrinsicBonus(nn.Module):
             r_in = self.bonus(td)
         return r_in, lambda: self.update(td)
 
+    def grouped_bonus(self, td: TensorDictBase) -> Tensor:
+        """:meth:`bonus` ``[n, g]`` of a batch shaped ``[n, g]`` that holds ``g`` transitions from each of ``n``
+        states (``s`` equal along the second dimension; e.g. counterfactual actions from sampled states). The
+        base class reads the ``n·g`` transitions one per row; a subclass may read each state once (ICM)."""
+        n, g = td.batch_size
+        return self.bonus(td.reshape(n * g)).reshape(n, g)
+
     def forward(self, td: TensorDictBase) -> Tensor:
         """Same as :meth:`bonus`."""
         return self.bonus(td)
@@ -304,14 +311,20 @@ class IntrinsicRewardTransform(Transform):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.add_bonus(tensordict)
 
-    def add_bonus(self, tensordict: TensorDictBase, *, learn: bool = True, record: bool = True) -> TensorDictBase:
+    def add_bonus(self, tensordict: TensorDictBase, *, learn: bool = True, record: bool = True,
+                  grouped: bool = False) -> TensorDictBase:
         """``r = r_ext + beta * r_in`` on a batch of transitions (what sampling does). ``learn=False``:
         the bonus takes no training step on it (even with ``update_bonus``); ``record=False``:
         :attr:`last_stats` keeps the last recorded batch's scalars. The options' running statistics
         are updated either way. E.g. transitions built from a sampled batch (counterfactual ones)
-        get the bonus with ``add_bonus(batch, learn=False, record=False)``."""
+        get the bonus with ``add_bonus(batch, learn=False, record=False)``. ``grouped=True``: the batch is
+        shaped ``[n, g]``, ``g`` transitions from each of ``n`` states (:meth:`IntrinsicBonus.grouped_bonus`;
+        without learning only)."""
         r_ext = self._get(tensordict, self.reward_key)
         lead = tuple(tensordict.batch_size)
+        if grouped and (learn or len(lead) != 2):
+            raise ValueError(f"add_bonus(grouped=True) takes a batch shaped [n, g] and learn=False; got batch {lead}, "
+                             f"learn={learn}")
         if r_ext.shape[: len(lead)] != lead:
             raise ValueError(f"reward {self.reward_key!r} shaped {tuple(r_ext.shape)} does not start with the batch {lead}")
         inputs = self.bonus_input(tensordict)
@@ -323,7 +336,7 @@ class IntrinsicRewardTransform(Transform):
             r_in, self._pending_step = self.bonus.bonus_then_step(inputs)
         else:
             with torch.no_grad():
-                r_in = self.bonus.bonus(inputs)
+                r_in = self.bonus.grouped_bonus(inputs) if grouped else self.bonus.bonus(inputs)
         raw = r_in.detach()
         if tuple(raw.shape) != lead:
             raise RuntimeError(f"{type(self.bonus).__name__}.bonus returned shape {tuple(raw.shape)}, expected {lead}")

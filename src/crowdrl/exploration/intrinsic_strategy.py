@@ -80,7 +80,7 @@ class IntrinsicExploration(ExplorationStrategy):
 
     def reward_bonus(self) -> Callable[[TensorDictBase], TensorDictBase]:
         transform = self._transform()
-        return lambda td: transform.add_bonus(td, learn=False, record=False)
+        return lambda td: transform.add_bonus(td, learn=False, record=False, grouped=True)
 
     def learners(self) -> list[AuxiliaryLearner]:
         return [BonusLearner(self._transform())]

@@ -101,7 +101,8 @@ class ExplorationStrategy:
 
     def reward_bonus(self) -> Callable[[TensorDictBase], TensorDictBase] | None:
         """Adds the exploration reward to a batch of transitions built from a sample (e.g. simulated
-        ones) without learning or logging from it; ``None`` without such a reward."""
+        ones) without learning or logging from it; ``None`` without such a reward. The batch is shaped
+        ``[n, g]``: ``g`` transitions from each of ``n`` sampled states (counterfactual actions)."""
         return None
 
     def learners(self) -> list[AuxiliaryLearner]:

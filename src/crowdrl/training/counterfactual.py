@@ -220,9 +220,9 @@ class CounterfactualExperience(UpdatePart):
         out = self.transitions(sample, self.alternatives(sample))
         if self.reward_bonus is None:
             return out
-        reward = out.get(("next", "reward"))
-        flat = self.reward_bonus(out.reshape(-1))  # the bonus reads one transition per row
-        out.set(("next", "reward"), flat.get(("next", "reward")).reshape(reward.shape))
+        # [B, k]: k transitions from each sampled state (a bonus may read each state once, as ICM does); on a
+        # copy, which the bonus fills with its own entries: the batch keeps the loss's keys
+        out.set(("next", "reward"), self.reward_bonus(out.clone()).get(("next", "reward")))
         return out
 
 
