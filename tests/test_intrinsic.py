@@ -444,3 +444,15 @@ def test_a_grouped_bonus_is_refused_with_learning_or_a_flat_batch():
         t.add_bonus(grouped_transitions(), grouped=True)
     with pytest.raises(ValueError, match=r"grouped=True.*\[n, g\]"):
         t.add_bonus(transitions(8), learn=False, grouped=True)
+
+
+def test_grouped_bonus_and_pairwise_distances_refuse_other_shapes():
+    from crowdrl.exploration.re3 import pairwise_distances
+
+    for bonus in (make_icm(), make_re3()):
+        with pytest.raises(ValueError, match=r"grouped_bonus takes a batch shaped \[n, g\].*got batch \(8,\)"):
+            bonus.grouped_bonus(transitions(8))
+    with pytest.raises(ValueError, match=r"pairwise_distances takes a float tensor shaped \[n, D\]"):
+        pairwise_distances(torch.ones(5))
+    with pytest.raises(ValueError, match=r"pairwise_distances takes a float tensor shaped \[n, D\]"):
+        pairwise_distances(torch.ones(5, 3, dtype=torch.int64))

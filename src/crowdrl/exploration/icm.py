@@ -142,12 +142,14 @@ class ICM(IntrinsicBonus):
         both = self.features([torch.cat((a, b)) for a, b in zip(self.obs(td), self.obs(td, next_=True))])
         phi, phi_next = both[:n], both[n:]
         self._last_feature_norm = phi.detach().norm(dim=-1).mean()
-        onehot = F.one_hot(idx, self.num_actions).to(phi.dtype)
-        pred = self.forward_model(torch.cat((phi, onehot), dim=-1))
-        target = phi_next.detach() if self.detach_target else phi_next
-        errors = (pred - target).pow(2).mean(-1)
+        errors = self.forward_errors(phi, idx, phi_next.detach() if self.detach_target else phi_next)
         logits = self.inverse_model(torch.cat((phi, phi_next), dim=-1))
         return errors, logits, idx
+
+    def forward_errors(self, phi: Tensor, idx: Tensor, phi_next: Tensor) -> Tensor:
+        """``mean_j (f(phi, a)_j - phi'_j)^2`` ``[*B]``: the forward model's error, the bonus."""
+        pred = self.forward_model(torch.cat((phi, F.one_hot(idx, self.num_actions).to(phi.dtype)), dim=-1))
+        return (pred - phi_next).pow(2).mean(-1)
 
     def bonus(self, td: TensorDictBase) -> Tensor:
         with torch.no_grad():
@@ -157,14 +159,12 @@ class ICM(IntrinsicBonus):
     def grouped_bonus(self, td: TensorDictBase) -> Tensor:
         """The forward errors ``[n, g]`` of ``g`` transitions from each of ``n`` states, each state's features
         computed once (``n + n·g`` rows through the feature net instead of ``2·n·g``)."""
-        n, g = td.batch_size
-        idx = self.action_index(td.get("action"), td.batch_size)
+        n, g = self.group_shape(td)
         states = [o[:, 0] for o in self.obs(td)]
         successors = [o.reshape(n * g, *o.shape[2:]) for o in self.obs(td, next_=True)]
         both = self.features([torch.cat((a, b)) for a, b in zip(states, successors)])
-        phi = both[:n].unsqueeze(1).expand(n, g, -1)
-        pred = self.forward_model(torch.cat((phi, F.one_hot(idx, self.num_actions).to(phi.dtype)), dim=-1))
-        return (pred - both[n:].reshape(n, g, -1)).pow(2).mean(-1)
+        return self.forward_errors(both[:n].unsqueeze(1).expand(n, g, -1), self.action_index(td.get("action"), td.batch_size),
+                                   both[n:].reshape(n, g, -1))
 
     def _step(self, errors: Tensor, logits: Tensor, idx: Tensor, feature_norm: Tensor) -> dict[str, float]:
         forward_loss = errors.mean()

@@ -104,8 +104,17 @@ class IntrinsicBonus(nn.Module):
         """:meth:`bonus` ``[n, g]`` of a batch shaped ``[n, g]`` that holds ``g`` transitions from each of ``n``
         states (``s`` equal along the second dimension; e.g. counterfactual actions from sampled states). The
         base class reads the ``n·g`` transitions one per row; a subclass may read each state once (ICM)."""
-        n, g = td.batch_size
+        n, g = self.group_shape(td)
         return self.bonus(td.reshape(n * g)).reshape(n, g)
+
+    @staticmethod
+    def group_shape(td: TensorDictBase) -> tuple[int, int]:
+        """``(n, g)`` of a grouped batch (:meth:`grouped_bonus`); a batch of another shape is refused."""
+        if td.batch_dims != 2:
+            raise ValueError(f"grouped_bonus takes a batch shaped [n, g] (g transitions from each of n states), "
+                             f"got batch {tuple(td.batch_size)}")
+        n, g = td.batch_size
+        return int(n), int(g)
 
     def forward(self, td: TensorDictBase) -> Tensor:
         """Same as :meth:`bonus`."""

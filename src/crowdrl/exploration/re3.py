@@ -56,6 +56,8 @@ def pairwise_distances(e: Tensor) -> Tensor:
                 [5., 0., 5.],
                 [0., 5., 0.]])
     """
+    if e.dim() != 2 or not e.is_floating_point():
+        raise ValueError(f"pairwise_distances takes a float tensor shaped [n, D], got {e.dtype} {tuple(e.shape)}")
     x = e.to(torch.float64)
     gram = x @ x.T
     sq = gram.diagonal()

@@ -221,8 +221,8 @@ class CounterfactualExperience(UpdatePart):
         if self.reward_bonus is None:
             return out
         # [B, k]: k transitions from each sampled state (a bonus may read each state once, as ICM does); on a
-        # copy, which the bonus fills with its own entries: the batch keeps the loss's keys
-        out.set(("next", "reward"), self.reward_bonus(out.clone()).get(("next", "reward")))
+        # shallow copy (no tensor copied), which the bonus fills with its own entries: the batch keeps the loss's keys
+        out.set(("next", "reward"), self.reward_bonus(out.clone(recurse=False)).get(("next", "reward")))
         return out
 
 
