@@ -62,6 +62,16 @@ def test_paper_presets_keep_their_budget_and_each_variants_schedule(preset):
             paper["val_every_frames"], paper["checkpoint_every_frames"]) == (16, 1.0, 25_000, 25_000, 25_000)
 
 
+def test_the_generalists_budget_is_the_episodes_preset_at_twice_the_frames_weighted_towards_the_walls():
+    """``preset=episodes2x`` (the budget of ``reproduce.py train_scenario=mix``): every key as ``preset=episodes``
+    but ``train.total_frames`` (1M for five scenarios in one network, where a specialist trains 500k on one), and
+    ``env=mix`` gives each wall scenario twice an open one's rows."""
+    one, two = (_compose(f"preset={p}", "env=mix") for p in ("episodes", "episodes2x"))
+    assert two["train"]["total_frames"] == 2 * one["train"]["total_frames"] == 1_000_000
+    assert {**two, "preset": "episodes", "train": {**two["train"], "total_frames": 500_000}} == one
+    assert one["env"]["mix"] == {"circle": 1, "square": 1, "corridor": 2, "doorway": 2, "room": 2}
+
+
 def test_a_stored_config_that_predates_a_changed_default_keeps_what_it_ran_with():
     from omegaconf import OmegaConf
 

@@ -147,7 +147,8 @@ def test_a_killed_mixed_run_resumes_bit_identically_and_evaluates_on_each_scenar
     run_training(run, tmp_path / "run")
     ref, got = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt") for d in ("ref", "run"))
     assert all(torch.equal(ref["loss"][k], got["loss"][k]) for k in ref["loss"])
-    assert read_eval_record(tmp_path / "ref" / "eval.json")["scenario"] == "doorway"
+    test = read_eval_record(tmp_path / "ref" / "eval.json")
+    assert test["scenario"] == "doorway" and test["train_scenario"] == "mix"  # tested on one, trained on the mix
     assert read_eval_record(tmp_path / "ref" / "eval.json") == read_eval_record(tmp_path / "run" / "eval.json")
     import json
 
@@ -160,7 +161,7 @@ def test_a_killed_mixed_run_resumes_bit_identically_and_evaluates_on_each_scenar
     assert "val/doorway/success_rate" in header
     for scenario in ("circle", "room", "corridor"):  # corridor: a scenario it never saw, read through the same tokens
         record, _ = evaluate_spec(checkpoint=tmp_path / "ref", scenario=scenario, episodes=3, record_episode=None)
-        assert record["scenario"] == scenario and record["episodes"] == 3
+        assert record["scenario"] == scenario and record["episodes"] == 3 and record["train_scenario"] == "mix"
     pytest.importorskip("onnxruntime")
     from crowdrl.agents import compare_on_test_cases
     from crowdrl.export import export_onnx

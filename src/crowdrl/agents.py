@@ -18,7 +18,7 @@ from crowdrl.evaluation.report import eval_record
 from crowdrl.sim.config import MIXED, SHARE_KEYS, CrowdConfig
 from crowdrl.training.checkpoint import checkpoint_path, load_trained_network, load_trained_predictor
 from crowdrl.training.config import EVAL_BATCH, RunConfig
-from crowdrl.training.config import crowd_config
+from crowdrl.training.config import crowd_config, trained_on
 from crowdrl.training.factories import make_actor, make_env
 from crowdrl.training.pipeline import TEST_SEED, act_with, evaluate_network, policy_name
 
@@ -205,7 +205,7 @@ def evaluate_spec(*, checkpoint: Path | str | None = None, policy: str | None = 
         path = checkpoint_path(checkpoint)
     record = eval_record(metrics, scenario=scenario, seed=seed, policy=policy_name(run, onnx=exported is not None),
                          checkpoint=str(path), checkpoint_frames=data.get("frames"),
-                         train_scenario=run.env.scenario, train_seed=run.seed,
+                         train_scenario=trained_on(run), train_seed=run.seed,
                          **({f"planning_{k}": acted(run, k) for k in acting}),
                          **(_humans_shown(vars(run.env)) if humans else {}), **_gap_fields(labels, ceiling, metrics))
     return record, traj

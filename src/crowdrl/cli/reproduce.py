@@ -94,6 +94,7 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     that record instead of evaluating the same cases again. False when it does not match."""
     from crowdrl.evaluation import EpisodeMetrics
     from crowdrl.evaluation.report import eval_record, read_summary, write_records
+    from crowdrl.training.config import trained_on
     from crowdrl.training.pipeline import TEST_SEED
 
     summary = run_dir / "summary.json"
@@ -110,7 +111,7 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
                                policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}"
                                + ("+planning" if OmegaConf.select(run_cfg, "planning.enabled", default=False) else ""),
                                checkpoint=str(run_dir / "checkpoints" / "best.pt"),
-                               checkpoint_frames=test.get("checkpoint_frames"), train_scenario=run_cfg.env.scenario,
+                               checkpoint_frames=test.get("checkpoint_frames"), train_scenario=trained_on(run_cfg),
                                train_seed=int(run_cfg.seed), reused_from="summary.json")])
     return True
 

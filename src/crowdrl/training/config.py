@@ -252,6 +252,13 @@ def trained_scenarios(run: RunConfig) -> tuple[str, ...]:
     return mixed or (run.env.scenario,)
 
 
+def trained_on(run: RunConfig) -> str:
+    """What a record names as the run's training scenario: ``mix`` for a run over several scenarios
+    (``env.mix``), else ``env.scenario``."""
+    names = trained_scenarios(run)
+    return MIX if len(names) > 1 else names[0]
+
+
 def sees_obstacles(run: RunConfig) -> bool:
     """Whether the run's networks read obstacles: trained in an obstacle scenario (one of its mix), they take the
     humans and the observed obstacle edges as entity tokens (:func:`crowdrl.envs.robot_centric.entity_tokens`),

@@ -18,7 +18,7 @@ from crowdrl.evaluation import EpisodeMetrics, Trajectory, evaluate
 from crowdrl.evaluation.report import eval_record, write_records
 from crowdrl.files import atomic_write_json, remove_stale_temporaries
 from crowdrl.training.checkpoint import checkpoint_path, config_fingerprint, load_trained_network, load_trained_predictor
-from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict
+from crowdrl.training.config import EVAL_BATCH, ConfigError, RunConfig, to_dict, trained_on
 from crowdrl.training.factories import make_actor, make_env
 from crowdrl.training.run_folder import RunFolderBusy, check_run_folder
 from crowdrl.training.trainer import Trainer
@@ -189,7 +189,7 @@ def evaluate_best(run: RunConfig, run_dir: Path, *, record_episode: int = 0) -> 
         traj.save(run_dir / f"test_case{record_episode}.trajectory.json")
     write_records(run_dir, [eval_record(metrics, scenario=run.env.scenario, seed=TEST_SEED, policy=policy_name(run),
                                         checkpoint=str(Path("checkpoints") / "best.pt"), checkpoint_frames=best["frames"],
-                                        train_scenario=run.env.scenario, train_seed=run.seed)])
+                                        train_scenario=trained_on(run), train_seed=run.seed)])
     return out
 
 
