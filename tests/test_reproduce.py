@@ -483,3 +483,21 @@ def test_one_reader_for_every_eval_json_layout(tmp_path):
         with pytest.raises(RecordError, match=re.escape(f"{path}")) as err:
             read_eval_records(path)
         assert words in str(err.value)
+
+
+def test_reusing_a_training_test_reads_a_folder_that_predates_later_keys(tmp_path):
+    """reproduce copies a finished run's own test record; a committed run folder whose config.yaml predates
+    ``env.mix`` (and other later keys) is read with what it ran with: trained on its scenario, not refused."""
+    import shutil
+
+    from crowdrl.cli.reproduce import reuse_training_test
+    from crowdrl.evaluation.report import read_eval_record
+
+    old = Path(__file__).resolve().parents[1] / "results" / "demo-planning" / "runs" / "egreedy-s0"
+    assert "mix" not in (old / "config.yaml").read_text()
+    for name in ("config.yaml", "summary.json"):
+        shutil.copyfile(old / name, tmp_path / name)
+    assert reuse_training_test(tmp_path, "circle", 1000)
+    record = read_eval_record(tmp_path / "eval-circle" / "eval.json")
+    assert record["train_scenario"] == "circle" and record["policy"] == "sgd3qn+egreedy+planning"
+    assert record["reused_from"] == "summary.json" and not reuse_training_test(tmp_path, "square", 1000)

@@ -94,25 +94,27 @@ def reuse_training_test(run_dir: Path, scenario: str, episodes: int) -> bool:
     that record instead of evaluating the same cases again. False when it does not match."""
     from crowdrl.evaluation import EpisodeMetrics
     from crowdrl.evaluation.report import eval_record, read_summary, write_records
+    from crowdrl.training.compat import stored_config
     from crowdrl.training.config import trained_on
-    from crowdrl.training.pipeline import TEST_SEED
+    from crowdrl.training.pipeline import TEST_SEED, policy_name
+    from crowdrl.training.validation import validate
 
     summary = run_dir / "summary.json"
     config = run_dir / "config.yaml"
     if not (summary.exists() and config.exists()):
         return False
     test = read_summary(summary)["test"]
-    run_cfg = OmegaConf.load(config)
-    if test.get("test_seed") != TEST_SEED or run_cfg.env.scenario != scenario or test["metrics"]["episodes"] != episodes:
+    # typed, as a checkpoint's config is read: keys a folder predates (env.mix, ...) at what it ran with
+    run = validate(stored_config(OmegaConf.load(config)), resources=False)
+    if test.get("test_seed") != TEST_SEED or run.env.scenario != scenario or test["metrics"]["episodes"] != episodes:
         return False
     metrics = EpisodeMetrics(**test["metrics"])
     write_records(eval_path(run_dir, scenario).parent,
                   [eval_record(metrics, scenario=scenario, seed=TEST_SEED,
-                               policy=f"{run_cfg.encoder.name}+{run_cfg.exploration.name}"
-                               + ("+planning" if OmegaConf.select(run_cfg, "planning.enabled", default=False) else ""),
+                               policy=policy_name(run),
                                checkpoint=str(run_dir / "checkpoints" / "best.pt"),
-                               checkpoint_frames=test.get("checkpoint_frames"), train_scenario=trained_on(run_cfg),
-                               train_seed=int(run_cfg.seed), reused_from="summary.json")])
+                               checkpoint_frames=test.get("checkpoint_frames"), train_scenario=trained_on(run),
+                               train_seed=run.seed, reused_from="summary.json")])
     return True
 
 
