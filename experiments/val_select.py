@@ -1,7 +1,7 @@
 """Which of a run's kept networks is best on more validation cases, scenario by scenario?
 
     python experiments/val_select.py results/mix-episodes2x/runs/egreedy-s{0,1} --episodes 200
-    python experiments/val_select.py RUN --networks best last val-000300000 --scenarios corridor doorway --json
+    python experiments/val_select.py RUN --networks best last val-000300000 --scenarios corridor doorway --json out.json
 
 A run keeps the network of its best validation (``checkpoints/best.pt``), its last one (``last.pt``) and,
 with ``train.keep_val_checkpoints``, one per validation (``val-*.pt``). A scenario mix validates on its
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--first", type=int, default=0, help="the first validation case (default 0)")
     p.add_argument("--batch", type=int, default=200, help="episodes stepped at once (results do not depend on it)")
     p.add_argument("--threads", type=int, default=1)
-    add_json_argument(p)
+    add_json_argument(p, path=True)
     args = p.parse_args(argv)
     for name, low in (("episodes", 1), ("batch", 1), ("threads", 1), ("first", 0)):
         if getattr(args, name) < low:
